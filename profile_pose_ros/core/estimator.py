@@ -1,0 +1,133 @@
+"""estimate_pose: profile -> corners -> closed form -> refinement -> checks.
+
+Every failure returns ok=False with a reason instead of raising: the node publishes nothing for a
+rejected profile and reports the reason in diagnostics. A pose is only returned when the corners fit
+the gauge (reprojection error under a bound, corners inside the gauge's footprint).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .corners import CornerOptions, detect_corners
+from .gauge import Gauge
+from .rotation import rotation_angle
+from .solver import PoseSolution, SolverError, closed_form, refine
+
+WEIGHTINGS = ("corner_covariance", "uniform")
+
+
+@dataclass(frozen=True)
+class EstimatorOptions:
+    corners: CornerOptions = CornerOptions()
+    refine: bool = True
+    weighting: str = "corner_covariance"  # or "uniform": the paper's plain eq. (15)
+    noise_std: float = 0.0  # m; 0 = estimate the depth noise from each face fit
+    max_reprojection_error: float = 1e-4  # m; reject poses whose corners miss their ridges by more
+    footprint_margin: float = 2e-3  # m; mapped corners must lie this close to the gauge's footprint
+    max_iterations: int = 30
+
+    def __post_init__(self) -> None:
+        if self.weighting not in WEIGHTINGS:
+            raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
+
+    def with_changes(self, **changes) -> "EstimatorOptions":
+        corner_keys = {k: changes.pop(k) for k in list(changes) if hasattr(CornerOptions, k)}
+        return replace(self, corners=replace(self.corners, **corner_keys), **changes)
+
+
+@dataclass
+class PoseEstimate:
+    """The pose of F in G (p_G = R p_F + t), or ok=False and why."""
+
+    ok: bool
+    reason: str = ""
+    R: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    t: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    corners: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    reprojection_error: float = float("nan")  # m, mean |corner residual| (paper eq. 17 as a length)
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))  # ROS order, see docs
+    closed_form: PoseSolution | None = None
+    refined: bool = False
+    iterations: int = 0
+    fit_rms: float = float("nan")  # m, rms residual of the face line fits
+    timings: dict = field(default_factory=dict)  # seconds per stage
+
+
+def _ros_covariance(rotation: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """[delta_F, t] (right perturbation) -> ROS order [t, delta_G] with delta_G = R delta_F."""
+    transform = np.zeros((6, 6))
+    transform[:3, 3:] = np.eye(3)
+    transform[3:, :3] = rotation
+    return transform @ local @ transform.T
+
+
+def _check(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, options: EstimatorOptions) -> str:
+    if not (np.all(np.isfinite(solution.rotation)) and np.all(np.isfinite(solution.translation))):
+        return "pose is not finite"
+    error = solution.reprojection_error
+    if not error <= options.max_reprojection_error:
+        return (f"reprojection error {error * 1e6:.1f} um exceeds {options.max_reprojection_error * 1e6:.1f} um "
+                f"(profile does not match gauge '{gauge.name}')")
+    mapped = corners[:, :1] * solution.rotation[:, 0] + corners[:, 1:] * solution.rotation[:, 2] + solution.translation
+    half = np.array([gauge.width, gauge.length]) / 2 + options.footprint_margin
+    outside = np.nonzero(np.any(np.abs(mapped[:, :2]) > half, axis=1))[0]
+    if len(outside):
+        i = int(outside[0])
+        return (f"corner {i} maps to ({mapped[i, 0] * 1e3:.1f}, {mapped[i, 1] * 1e3:.1f}) mm, outside gauge "
+                f"'{gauge.name}' ({gauge.width * 1e3:.0f} x {gauge.length * 1e3:.0f} mm)")
+    return ""
+
+
+def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | None = None,
+                  **overrides) -> PoseEstimate:
+    """Estimate the profiler pose from one profile ((N, 2) [x, z] in metres, NaN = invalid).
+
+    Keyword overrides are any EstimatorOptions or CornerOptions field, e.g. refine=False.
+    """
+    options = options or EstimatorOptions()
+    if overrides:
+        options = options.with_changes(**overrides)
+    timings = {}
+    start = time.perf_counter()
+    found = detect_corners(points, gauge.n_ridges, options.corners)
+    timings["corner_detection"] = time.perf_counter() - start
+    if not found.ok:
+        return PoseEstimate(False, f"corner detection: {found.reason}", timings=timings)
+    corners = found.corners
+    start = time.perf_counter()
+    try:
+        initial = closed_form(gauge, corners)
+    except (SolverError, np.linalg.LinAlgError) as exc:
+        return PoseEstimate(False, f"closed form: {exc}", corners=corners, timings=timings)
+    timings["closed_form"] = time.perf_counter() - start
+
+    corner_cov = found.covariance(options.noise_std or None)
+    solution, refined, iterations = initial, False, 0
+    start = time.perf_counter()
+    try:
+        result = refine(gauge, corners, initial, corner_cov, options.weighting == "corner_covariance",
+                        options.max_iterations if options.refine else 0)
+    except np.linalg.LinAlgError as exc:
+        return PoseEstimate(False, f"refinement: {exc}", corners=corners, closed_form=initial, timings=timings)
+    if options.refine:
+        solution, refined, iterations = result.solution, True, result.iterations
+        timings["refinement"] = time.perf_counter() - start
+    reason = _check(gauge, solution, corners, options)
+    estimate = PoseEstimate(
+        ok=not reason, reason=reason, corners=corners, reprojection_error=solution.reprojection_error,
+        closed_form=initial, refined=refined, iterations=iterations, fit_rms=found.fit_rms, timings=timings,
+    )
+    if not reason:
+        estimate.R, estimate.t = solution.rotation, solution.translation
+        estimate.covariance = _ros_covariance(solution.rotation, result.covariance)
+    return estimate
+
+
+def pose_error(rotation: np.ndarray, translation: np.ndarray, true_rotation: np.ndarray,
+               true_translation: np.ndarray) -> tuple[float, float]:
+    """(position error m, rotation error rad) between an estimate and the truth."""
+    return float(np.linalg.norm(translation - true_translation)), rotation_angle(rotation, true_rotation)
+

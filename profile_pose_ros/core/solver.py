@@ -1,0 +1,145 @@
+"""Pose from corners: the paper's closed form (eqs. 5-14) and its refinement (eq. 15).
+
+The corner residual used throughout is the algebraic residual of eq. (9): for corner p = [px, pz] of
+F mapped into G as P = R [px, 0, pz] + t, the x-z offset between P and ridge i at the same y,
+    r_i = [P_x - u_i P_y - q_ix,  P_z - w_i P_y - q_iz].
+It is a length. Eq. (17) as printed (a difference of unit-y ridge directions) equals r_i / |P_y|, so
+|r_i| is what we report as the paper's reprojection error.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .gauge import Gauge
+from .rotation import nearest_rotation, skew, so3_exp
+
+
+@dataclass(frozen=True)
+class PoseSolution:
+    rotation: np.ndarray  # (3, 3), p_G = R p_F + t
+    translation: np.ndarray  # (3,)
+    residuals: np.ndarray  # (n, 2) corner residuals r_i, metres
+
+    @property
+    def reprojection_error(self) -> float:
+        """Mean over corners of |r_i| (m): the paper's eq. (17) metric, as a length."""
+        return float(np.mean(np.hypot(self.residuals[:, 0], self.residuals[:, 1])))
+
+
+class SolverError(ArithmeticError):
+    """The corners do not determine a pose (degenerate geometry)."""
+
+
+def corner_residuals(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    mapped = corners[:, :1] * rotation[:, 0] + corners[:, 1:] * rotation[:, 2] + translation
+    return np.column_stack([
+        mapped[:, 0] - gauge.u * mapped[:, 1] - gauge.q[:, 0],
+        mapped[:, 2] - gauge.w * mapped[:, 1] - gauge.q[:, 2],
+    ])
+
+
+def closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
+    """Paper eqs. (9)-(14): solve the stacked 2n x 9 system by SVD, then project onto SE(3)."""
+    n = len(corners)
+    p = np.column_stack([corners[:, 0], corners[:, 1], np.ones(n)])  # [px, pz, 1]
+    a = np.zeros((2 * n, 9))
+    a[0::2, 0:3] = p
+    a[0::2, 3:6] = -gauge.u[:, None] * p
+    a[1::2, 3:6] = -gauge.w[:, None] * p
+    a[1::2, 6:9] = p
+    b = np.empty(2 * n)
+    b[0::2] = gauge.q[:, 0]
+    b[1::2] = gauge.q[:, 2]
+    x, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
+    if rank < 9:
+        raise SolverError(f"closed form is underdetermined with {n} corners (rank {rank} < 9)")
+    m = x.reshape(3, 3)  # rows m_1..m_3 of M = [r1 r3 t]
+    r1, r3, t_hat = m[:, 0], m[:, 1], m[:, 2]
+    r_hat = np.column_stack([r1, np.cross(r3, r1), r3])
+    rotation = nearest_rotation(r_hat)
+    norm_hat = np.linalg.norm(r_hat)
+    if not np.isfinite(norm_hat) or norm_hat == 0:
+        raise SolverError("closed form produced a degenerate rotation")
+    translation = np.linalg.norm(rotation) / norm_hat * t_hat
+    return PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation))
+
+
+def residual_jacobian(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """(2n, 6) d r / d [delta, t] for the right perturbation R <- R exp([delta]x)."""
+    n = len(corners)
+    jac = np.zeros((2 * n, 6))
+    for i in range(n):
+        p = np.array([corners[i, 0], 0.0, corners[i, 1]])
+        c = np.array([[1.0, -gauge.u[i], 0.0], [0.0, -gauge.w[i], 1.0]])
+        jac[2 * i:2 * i + 2, :3] = -c @ rotation @ skew(p)
+        jac[2 * i:2 * i + 2, 3:] = c
+    return jac
+
+
+def residual_covariance(gauge: Gauge, rotation: np.ndarray, corner_covariance: np.ndarray) -> np.ndarray:
+    """Covariance of the stacked residuals induced by the corners' covariance (linear in the corners)."""
+    n = len(gauge.u)
+    mapping = np.zeros((2 * n, 2 * n))
+    plane = rotation[:, [0, 2]]
+    for i in range(n):
+        c = np.array([[1.0, -gauge.u[i], 0.0], [0.0, -gauge.w[i], 1.0]])
+        mapping[2 * i:2 * i + 2, 2 * i:2 * i + 2] = c @ plane
+    return mapping @ corner_covariance @ mapping.T
+
+
+@dataclass(frozen=True)
+class Refinement:
+    solution: PoseSolution
+    covariance: np.ndarray  # (6, 6) over [delta_F (3), t (3)]
+    iterations: int
+
+
+def refine(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covariance: np.ndarray | None,
+           weighted: bool = True, max_iterations: int = 30) -> Refinement:
+    """Levenberg-Marquardt on SO(3) x R^3 minimising the (weighted) corner residuals, eq. (15).
+
+    weighted=True uses the inverse covariance of the residuals (maximum likelihood for the corner
+    noise); weighted=False is the paper's plain sum of squares. The returned covariance is the
+    sandwich form, so it stays honest when the weights are not the inverse covariance.
+    """
+    rotation, translation = start.rotation, start.translation
+    r = corner_residuals(gauge, corners, rotation, translation).ravel()
+    have_cov = corner_covariance is not None and corner_covariance.size
+    weight = np.eye(len(r))
+    if weighted and have_cov:
+        weight = np.linalg.inv(residual_covariance(gauge, rotation, corner_covariance))
+    cost = r @ weight @ r
+    damping = 1e-6
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        jac = residual_jacobian(gauge, corners, rotation)
+        hessian = jac.T @ weight @ jac
+        gradient = jac.T @ weight @ r
+        step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)), -gradient)
+        new_rotation = rotation @ so3_exp(step[:3])
+        new_translation = translation + step[3:]
+        new_r = corner_residuals(gauge, corners, new_rotation, new_translation).ravel()
+        new_cost = new_r @ weight @ new_r
+        if new_cost <= cost:
+            rotation, translation, r, cost = new_rotation, new_translation, new_r, new_cost
+            damping = max(damping / 10.0, 1e-12)
+            if np.max(np.abs(step)) < 1e-13:
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e8:
+                break
+    jac = residual_jacobian(gauge, corners, rotation)
+    if have_cov:
+        sigma_r = residual_covariance(gauge, rotation, corner_covariance)
+        if weighted:
+            weight = np.linalg.inv(sigma_r)
+        bread = np.linalg.inv(jac.T @ weight @ jac)
+        covariance = bread @ (jac.T @ weight @ sigma_r @ weight @ jac) @ bread
+    else:
+        dof = max(1, len(r) - 6)
+        covariance = np.linalg.inv(jac.T @ jac) * (r @ r) / dof
+    solution = PoseSolution(rotation, translation, r.reshape(-1, 2))
+    return Refinement(solution, 0.5 * (covariance + covariance.T), iterations)
