@@ -1,0 +1,106 @@
+"""The profile's PointCloud2 layout (DESIGN.md), decoded and encoded without ROS.
+
+The node hands over the message's fields; everything that can be wrong with them is checked here and
+raised as ProfileFormatError with a message a person can act on. Nothing else is raised for any input.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
+POINT_STEP = 16  # x, y, z, intensity as float32
+_DATATYPE_NAMES = {1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32", 7: "FLOAT32", 8: "FLOAT64"}
+
+
+class ProfileFormatError(ValueError):
+    """The cloud is not a profile as DESIGN.md fixes it."""
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str
+    offset: int
+    datatype: int
+    count: int = 1
+
+
+def decode_profile(*, width: int, height: int, fields: Sequence[Field], is_bigendian: bool, point_step: int,
+                   row_step: int, data: bytes | bytearray | memoryview | Sequence[int]) -> np.ndarray:
+    """(N, 2) float64 [x, z]; NaN rows are invalid points. Raises ProfileFormatError."""
+    if height != 1:
+        raise ProfileFormatError(f"height is {height}; a profile is one row (height = 1)")
+    if width <= 0:
+        raise ProfileFormatError("empty cloud (width = 0)")
+    if point_step <= 0:
+        raise ProfileFormatError(f"point_step is {point_step}; it must be positive")
+    if is_bigendian:
+        raise ProfileFormatError("big-endian cloud; profiles are little-endian")
+    by_name = {}
+    for f in fields:
+        by_name.setdefault(f.name, f)
+    for name in ("x", "z"):
+        if name not in by_name:
+            raise ProfileFormatError(f"field '{name}' is missing (fields: {sorted(by_name) or 'none'})")
+    for name in ("x", "y", "z"):
+        f = by_name.get(name)
+        if f is None:
+            continue
+        if f.datatype != FLOAT32 or f.count != 1:
+            kind = _DATATYPE_NAMES.get(f.datatype, f"datatype {f.datatype}")
+            raise ProfileFormatError(f"field '{name}' is {kind} x {f.count}; profiles use one FLOAT32")
+        if f.offset < 0 or f.offset + 4 > point_step:
+            raise ProfileFormatError(f"field '{name}' at offset {f.offset} does not fit point_step {point_step}")
+    if row_step != width * point_step:
+        raise ProfileFormatError(f"row_step {row_step} != width {width} x point_step {point_step}")
+    size = len(data)
+    if size != row_step * height:
+        raise ProfileFormatError(f"data has {size} bytes; width {width} x point_step {point_step} needs "
+                                 f"{row_step * height}")
+    try:
+        raw = np.frombuffer(data, dtype=np.uint8)
+    except TypeError:  # a plain sequence of ints
+        try:
+            raw = np.frombuffer(bytes(data), dtype=np.uint8)
+        except (TypeError, ValueError) as exc:
+            raise ProfileFormatError(f"data is not a byte buffer ({exc})") from None
+
+    def column(name: str) -> np.ndarray:
+        dtype = np.dtype({"names": [name], "formats": ["<f4"], "offsets": [by_name[name].offset],
+                          "itemsize": point_step})
+        return raw.view(dtype)[name].astype(np.float64)
+
+    x, z = column("x"), column("z")
+    if "y" in by_name:
+        y = column("y")
+        off_plane = np.isfinite(y) & (y != 0.0)
+        if off_plane.any():
+            raise ProfileFormatError(f"{int(off_plane.sum())} points have y != 0; a profile lies in the "
+                                     f"laser plane (y = 0)")
+    infinite = np.isinf(x) | np.isinf(z)
+    if infinite.any():
+        raise ProfileFormatError(f"{int(infinite.sum())} points are +-inf; invalid points must be NaN")
+    points = np.column_stack([x, z])
+    points[np.isnan(points).any(axis=1)] = np.nan
+    if np.isnan(points[:, 0]).all():
+        raise ProfileFormatError(f"all {width} points are invalid (NaN)")
+    return points
+
+
+def encode_profile(points: np.ndarray, intensity: np.ndarray | None = None) -> tuple[list[Field], int, bytes]:
+    """(fields, point_step, data) for an (N, 2) [x, z] profile: x, y=0, z float32, optional intensity."""
+    points = np.asarray(points, dtype=float)
+    n = len(points)
+    step = POINT_STEP if intensity is not None else 12
+    buffer = np.zeros((n, step // 4), dtype="<f4")
+    buffer[:, 0] = points[:, 0]
+    buffer[:, 2] = points[:, 1]
+    invalid = ~np.isfinite(points).all(axis=1)
+    buffer[invalid, 0:3] = np.nan
+    fields = [Field("x", 0, FLOAT32), Field("y", 4, FLOAT32), Field("z", 8, FLOAT32)]
+    if intensity is not None:
+        buffer[:, 3] = intensity
+        fields.append(Field("intensity", 12, FLOAT32))
+    return fields, step, buffer.tobytes()

@@ -1,0 +1,64 @@
+"""Conversions between ROS messages and the core's arrays (message types only, no rclpy node code)."""
+from __future__ import annotations
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from sensor_msgs.msg import PointCloud2, PointField
+
+from ..core.profile_cloud import Field, decode_profile, encode_profile
+from ..core.rotation import quaternion_xyzw, rotation_from_quaternion_xyzw
+
+
+def cloud_from_points(points: np.ndarray, stamp: Time, frame_id: str,
+                      intensity: np.ndarray | None = None) -> PointCloud2:
+    fields, step, data = encode_profile(points, intensity)
+    msg = PointCloud2()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height = 1
+    msg.width = len(points)
+    msg.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in fields]
+    msg.is_bigendian = False
+    msg.point_step = step
+    msg.row_step = step * len(points)
+    msg.data = data
+    msg.is_dense = False
+    return msg
+
+
+def points_from_cloud(msg: PointCloud2) -> np.ndarray:
+    """Raises ProfileFormatError for anything that is not a DESIGN.md profile."""
+    fields = [Field(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
+    return decode_profile(width=msg.width, height=msg.height, fields=fields, is_bigendian=msg.is_bigendian,
+                          point_step=msg.point_step, row_step=msg.row_step, data=msg.data)
+
+
+def pose_stamped(rotation: np.ndarray, translation: np.ndarray, stamp: Time, frame_id: str) -> PoseStamped:
+    msg = PoseStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    fill_pose(msg.pose, rotation, translation)
+    return msg
+
+
+def pose_with_covariance(rotation: np.ndarray, translation: np.ndarray, covariance: np.ndarray, stamp: Time,
+                         frame_id: str) -> PoseWithCovarianceStamped:
+    msg = PoseWithCovarianceStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    fill_pose(msg.pose.pose, rotation, translation)
+    msg.pose.covariance = [float(v) for v in np.asarray(covariance, dtype=float).ravel()]
+    return msg
+
+
+def fill_pose(pose, rotation: np.ndarray, translation: np.ndarray) -> None:
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in translation)
+    q = quaternion_xyzw(rotation)
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
+
+
+def rotation_translation(pose) -> tuple[np.ndarray, np.ndarray]:
+    """(R, t) of a geometry_msgs/Pose."""
+    o, p = pose.orientation, pose.position
+    return rotation_from_quaternion_xyzw(np.array([o.x, o.y, o.z, o.w])), np.array([p.x, p.y, p.z])

@@ -1,0 +1,36 @@
+"""Declaring parameters with descriptors (description, range), so `ros2 param describe` and the
+generated parameter reference say the same thing as the code."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.node import Node
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    default: Any
+    description: str
+    low: float | int | None = None
+    high: float | int | None = None
+    read_only: bool = False
+
+    def descriptor(self) -> ParameterDescriptor:
+        d = ParameterDescriptor(description=self.description, read_only=self.read_only)
+        if self.low is not None and not isinstance(self.default, bool):
+            if isinstance(self.default, int):
+                d.integer_range = [IntegerRange(from_value=int(self.low), to_value=int(self.high), step=1)]
+            else:
+                d.floating_point_range = [FloatingPointRange(from_value=float(self.low), to_value=float(self.high),
+                                                             step=0.0)]
+        return d
+
+
+def declare_all(node: Node, params: list[Param]) -> dict[str, Any]:
+    """Declare every parameter and return their (possibly overridden) values by name."""
+    for p in params:
+        node.declare_parameter(p.name, p.default, p.descriptor())
+    return {p.name: node.get_parameter(p.name).value for p in params}

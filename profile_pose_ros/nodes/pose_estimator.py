@@ -1,0 +1,184 @@
+"""pose_estimator: `profile` (PointCloud2) -> `pose`, `pose_with_covariance`, `/diagnostics`.
+
+Thin glue around profile_pose_ros.core.estimate_pose. A profile that fails any check publishes no
+pose; the reason goes to diagnostics and the node keeps running.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2
+
+from ..core.estimator import WEIGHTINGS, EstimatorOptions, estimate_pose
+from ..core.gauge import Gauge, GaugeError
+from ..core.profile_cloud import ProfileFormatError
+from ..resources import DEFAULT_GAUGE, config_path
+from .diagnostics import ERROR, OK, WARN, diagnostic_array
+from .messages import points_from_cloud, pose_stamped, pose_with_covariance
+from .parameters import Param, declare_all
+
+NODE_NAME = "pose_estimator"
+
+PARAMETERS = [
+    Param("gauge_file", "", "Gauge YAML (DESIGN.md format). Empty: the shipped config/gauge_paper_n5.yaml.",
+          read_only=True),
+    Param("gauge_frame", "gauge", "frame_id of published poses (the gauge frame G)."),
+    Param("profiler_frame", "profiler", "Expected frame_id of incoming profiles; empty accepts any."),
+    Param("refine", True, "Refine the closed form by maximum likelihood (paper eq. 15)."),
+    Param("refine_weighting", "corner_covariance",
+          f"Refinement weights: one of {', '.join(WEIGHTINGS)} (uniform = the paper's plain sum of squares)."),
+    Param("noise_std", 0.0, "Profiler depth noise (m) for the covariance; 0 estimates it from each face fit.",
+          0.0, 1e-3),
+    Param("rdp_epsilon", 3e-4, "RDP tolerance for corner candidates (m).", 1e-6, 5e-3),
+    Param("trim_fraction", 0.10, "Fraction of each segment dropped at both ends before the line fit.", 0.0, 0.4),
+    Param("min_segment_points", 20, "Segments with fewer points are treated as spikes or edge debris.", 3, 3200),
+    Param("min_corner_angle", math.radians(5.0), "Adjacent segments closer than this in direction are one face (rad).",
+          0.0, 0.5),
+    Param("max_face_angle", math.radians(70.0), "End segments steeper than this are side walls (rad).", 0.5, 1.5707),
+    Param("max_corner_offset", 1e-3, "A corner must lie between its two faces to within this (m).", 1e-5, 0.01),
+    Param("robust_line_fit", True, "Reject outlier points (spikes) in each face line fit."),
+    Param("max_reprojection_error", 1e-4, "Reject poses whose mean corner residual exceeds this (m).", 1e-7, 0.01),
+    Param("diagnostics_period", 1.0, "Period of /diagnostics messages (s).", 0.02, 60.0),
+]
+
+_OPTION_OF_PARAMETER = {
+    "refine": "refine", "refine_weighting": "weighting", "noise_std": "noise_std", "rdp_epsilon": "rdp_epsilon",
+    "trim_fraction": "trim_fraction", "min_segment_points": "min_segment_points",
+    "min_corner_angle": "min_corner_angle", "max_face_angle": "max_face_angle",
+    "max_corner_offset": "max_corner_offset", "robust_line_fit": "robust",
+    "max_reprojection_error": "max_reprojection_error",
+}
+
+
+def options_from(values: dict) -> EstimatorOptions:
+    """EstimatorOptions from parameter values; raises ValueError for an invalid combination."""
+    changes = {option: values[name] for name, option in _OPTION_OF_PARAMETER.items() if name in values}
+    return EstimatorOptions().with_changes(**changes)
+
+
+class PoseEstimatorNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        self.values = declare_all(self, PARAMETERS)
+        self.gauge_file = self.values["gauge_file"] or str(config_path(DEFAULT_GAUGE))
+        self.gauge = Gauge.from_yaml(self.gauge_file)  # GaugeError: main() reports it and exits
+        self.options = options_from(self.values)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.pose_pub = self.create_publisher(PoseStamped, "pose", 10)
+        self.covariance_pub = self.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data)
+        self.diagnostics_timer = self.create_timer(self.values["diagnostics_period"], self._publish_diagnostics)
+
+        self.received = self.published = self.rejected = 0
+        self.window = {"received": 0, "rejected": 0, "busy": 0.0, "start": time.monotonic()}
+        self.last_error = ""
+        self.last_reprojection_error = float("nan")
+        self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}")
+
+    # ------------------------------------------------------------------ parameters
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        values = dict(self.values)
+        values.update({p.name: p.value for p in parameters})
+        try:
+            options = options_from(values)
+        except (ValueError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        if "diagnostics_period" in {p.name for p in parameters}:
+            self.diagnostics_timer.timer_period_ns = int(values["diagnostics_period"] * 1e9)
+        self.values, self.options = values, options
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------ profiles
+    def _on_profile(self, msg: PointCloud2) -> None:
+        start = time.perf_counter()
+        self.received += 1
+        self.window["received"] += 1
+        try:
+            reason = self._estimate_and_publish(msg)
+        except Exception as exc:  # noqa: BLE001 - a malformed input must never take the node down
+            reason = f"internal error: {exc!r}"
+            self.get_logger().error(reason)
+        if reason:
+            self.rejected += 1
+            self.window["rejected"] += 1
+            self.last_error = reason
+            self.get_logger().warn(f"profile rejected: {reason}", throttle_duration_sec=1.0)
+        self.window["busy"] += time.perf_counter() - start
+
+    def _estimate_and_publish(self, msg: PointCloud2) -> str:
+        expected = self.values["profiler_frame"]
+        if expected and msg.header.frame_id != expected:
+            return f"profile frame_id '{msg.header.frame_id}' is not '{expected}'"
+        try:
+            points = points_from_cloud(msg)
+        except ProfileFormatError as exc:
+            return f"bad profile: {exc}"
+        estimate = estimate_pose(points, self.gauge, self.options)
+        self.last_reprojection_error = estimate.reprojection_error
+        if not estimate.ok:
+            return estimate.reason
+        frame = self.values["gauge_frame"]
+        self.pose_pub.publish(pose_stamped(estimate.R, estimate.t, msg.header.stamp, frame))
+        self.covariance_pub.publish(pose_with_covariance(estimate.R, estimate.t, estimate.covariance,
+                                                         msg.header.stamp, frame))
+        self.published += 1
+        return ""
+
+    # ------------------------------------------------------------------ diagnostics
+    def _publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        w = self.window
+        elapsed = max(now - w["start"], 1e-9)
+        received, rejected = w["received"], w["rejected"]
+        if received == 0:
+            level, message = WARN, f"no profiles on '{self.resolve_topic_name('profile')}' for {elapsed:.1f} s"
+        elif rejected == received:
+            level, message = ERROR, f"all {received} profiles rejected; last: {self.last_error}"
+        elif rejected:
+            level, message = WARN, f"{rejected} of {received} profiles rejected; last: {self.last_error}"
+        else:
+            level, message = OK, f"estimating at {received / elapsed:.1f} Hz"
+        values = {
+            "rate_hz": received / elapsed, "profiles_received": self.received, "poses_published": self.published,
+            "profiles_rejected": self.rejected, "last_error": self.last_error or "none",
+            "last_reprojection_error_um": self.last_reprojection_error * 1e6,
+            "mean_processing_ms": 1e3 * w["busy"] / received if received else 0.0,
+            "gauge": self.gauge.name, "gauge_file": self.gauge_file,
+        }
+        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(),
+                                                      f"{self.get_name()}: pose estimation", self.gauge.name,
+                                                      level, message, values))
+        self.window = {"received": 0, "rejected": 0, "busy": 0.0, "start": now}
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = PoseEstimatorNode()
+    except GaugeError as exc:
+        print(f"[{NODE_NAME}] refusing to start: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 1
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

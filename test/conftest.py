@@ -1,0 +1,79 @@
+"""Shared fixtures: the shipped gauge, seeded RNGs, and a fresh rclpy Context per test."""
+from __future__ import annotations
+
+import itertools
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from profile_pose_ros.core import Gauge
+
+ROOT = Path(__file__).resolve().parent.parent
+PAPER_GAUGE = ROOT / "config" / "gauge_paper_n5.yaml"
+_domains = itertools.count()
+
+
+@pytest.fixture(scope="session")
+def gauge() -> Gauge:
+    return Gauge.from_yaml(PAPER_GAUGE)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(20260122)
+
+
+def unique_domain_id() -> int:
+    """Distinct per test and per concurrently running pytest process (valid Fast DDS ids: 0-232)."""
+    return 1 + (os.getpid() * 13 + next(_domains)) % 200
+
+
+class RosHarness:
+    """A fresh Context on its own domain, an executor, and helpers to spin until a condition."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.rclpy = rclpy
+        self.context = Context()
+        self.domain_id = unique_domain_id()
+        rclpy.init(context=self.context, domain_id=self.domain_id)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.nodes = []
+
+    def add(self, node):
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def node(self, name: str):
+        return self.add(self.rclpy.create_node(name, context=self.context))
+
+    def spin_until(self, condition, timeout: float = 10.0, action=None) -> bool:
+        """Spin until condition() is true or the deadline passes; action() runs each turn (e.g. publish)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if condition():
+                return True
+            if action is not None:
+                action()
+            self.executor.spin_once(timeout_sec=0.02)
+        return bool(condition())
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        for node in self.nodes:
+            node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+
+
+@pytest.fixture
+def ros():
+    harness = RosHarness()
+    yield harness
+    harness.close()
