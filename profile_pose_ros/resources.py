@@ -15,7 +15,7 @@ def config_path(name: str) -> Path:
 
         try:
             candidates.append(Path(get_package_share_directory(PACKAGE)) / "config" / name)
-        except (PackageNotFoundError, ValueError):
+        except (PackageNotFoundError, ValueError, OSError):  # OSError: no AMENT_PREFIX_PATH (pip install)
             pass
     except ImportError:
         pass

@@ -1,0 +1,83 @@
+"""estimate_pose: exact on clean profiles, ML refinement beats the closed form, honest covariance,
+and no pose at all for a profile that does not belong to the gauge."""
+import numpy as np
+import pytest
+
+from profile_pose_ros.core import (EstimatorOptions, estimate_pose, pose_error, render_profile, sample_pose)
+from profile_pose_ros.core.gauge_design import heightfield_gauge
+from profile_pose_ros.core.rotation import so3_log
+
+
+def test_noise_free_recovery_below_a_nanometre(gauge, rng):
+    for _ in range(100):
+        rotation, t = sample_pose(gauge, rng)
+        estimate = estimate_pose(render_profile(gauge, rotation, t), gauge)
+        assert estimate.ok, estimate.reason
+        cf = estimate.closed_form
+        for r, tt in ((cf.rotation, cf.translation), (estimate.R, estimate.t)):
+            position, angle = pose_error(r, tt, rotation, t)
+            assert position < 1e-9 and angle < 1e-9
+
+
+def test_float32_profile_is_within_rounding(gauge, rng):
+    worst = np.zeros(2)
+    for _ in range(50):
+        rotation, t = sample_pose(gauge, rng)
+        profile = render_profile(gauge, rotation, t).astype(np.float32).astype(float)
+        estimate = estimate_pose(profile, gauge)
+        assert estimate.ok, estimate.reason
+        worst = np.maximum(worst, pose_error(estimate.R, estimate.t, rotation, t))
+    assert worst[0] < 2e-6 and worst[1] < 10e-6
+
+
+@pytest.mark.parametrize("weighting", ["corner_covariance", "uniform"])
+def test_refinement_beats_closed_form_at_5um(gauge, rng, weighting):
+    rows = {"cf": [], "ref": []}
+    nees = []
+    for _ in range(150):
+        rotation, t = sample_pose(gauge, rng)
+        estimate = estimate_pose(render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), gauge,
+                                 weighting=weighting)
+        assert estimate.ok, estimate.reason
+        cf = estimate.closed_form
+        rows["cf"].append([cf.reprojection_error, *pose_error(cf.rotation, cf.translation, rotation, t)])
+        rows["ref"].append([estimate.reprojection_error, *pose_error(estimate.R, estimate.t, rotation, t)])
+        d = np.concatenate([t - estimate.t, so3_log(rotation @ estimate.R.T)])
+        nees.append(d @ np.linalg.solve(estimate.covariance, d))
+    cf, ref = np.array(rows["cf"]), np.array(rows["ref"])
+    for stat in (np.mean, np.std, np.median):
+        assert np.all(stat(ref, axis=0) < stat(cf, axis=0)), stat.__name__
+    assert np.median(ref[:, 0]) <= 1e-6
+    assert 4.5 < np.mean(nees) < 8.0  # chi-square with 6 dof: the covariance is honest
+
+
+def test_profile_of_another_gauge_gives_no_pose(gauge, rng):
+    other = heightfield_gauge("other", 0.12, 0.10, [-0.045, -0.02, 0.003, 0.025, 0.046],
+                              np.radians([-8.0, 6.0, 12.0, -4.0, -9.0]), [-0.7, 0.75, -0.7, 0.8, -0.75, 0.7])
+    for _ in range(20):
+        rotation, t = sample_pose(other, rng)
+        estimate = estimate_pose(render_profile(other, rotation, t, noise_std=5e-6, rng=rng), gauge)
+        assert not estimate.ok
+        assert np.all(np.isnan(estimate.t))
+
+
+def test_four_ridge_gauge_closed_form_is_reported(rng):
+    four = heightfield_gauge("n4", 0.12, 0.10, [-0.033, -0.011, 0.011, 0.033], np.radians([10.0, -5.0, 8.0, -6.0]),
+                             [0.7, -0.7, 0.75, -0.7, 0.7])
+    rotation, t = sample_pose(four, rng)
+    estimate = estimate_pose(render_profile(four, rotation, t), four)
+    assert not estimate.ok and "underdetermined" in estimate.reason
+
+
+def test_options_validate_and_override():
+    with pytest.raises(ValueError, match="weighting"):
+        EstimatorOptions(weighting="magic")
+    options = EstimatorOptions().with_changes(rdp_epsilon=1e-3, refine=False)
+    assert options.corners.rdp_epsilon == 1e-3 and options.refine is False
+
+
+def test_unrefined_estimate_is_the_closed_form(gauge, rng):
+    rotation, t = sample_pose(gauge, rng)
+    estimate = estimate_pose(render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), gauge, refine=False)
+    assert estimate.ok and not estimate.refined
+    assert np.array_equal(estimate.R, estimate.closed_form.rotation)

@@ -1,0 +1,192 @@
+"""pose_estimator with real rclpy: poses from rendered profiles, and every bad input -> no pose, a
+diagnostic with the reason, and a node that still works afterwards."""
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2, PointField
+
+from profile_pose_ros.core import Gauge, GaugeError, pose_error, render_profile, sample_pose, true_corners
+from profile_pose_ros.core.gauge_design import heightfield_gauge
+from profile_pose_ros.core.rotation import so3_log
+from profile_pose_ros.nodes.messages import cloud_from_points, rotation_translation
+from profile_pose_ros.nodes.pose_estimator import PoseEstimatorNode
+
+from conftest import PAPER_GAUGE
+
+
+class Probe:
+    """The test's side of the graph: publishes profiles, records poses and diagnostics."""
+
+    def __init__(self, ros, **overrides):
+        params = [Parameter("diagnostics_period", value=0.05)]
+        params += [Parameter(k, value=v) for k, v in overrides.items()]
+        self.ros = ros
+        self.estimator = ros.add(PoseEstimatorNode(context=ros.context, parameter_overrides=params))
+        node = ros.node("probe")
+        self.node = node
+        self.publisher = node.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
+        self.poses, self.covariances, self.diagnostics = [], [], []
+        node.create_subscription(PoseStamped, "pose", self.poses.append, 10)
+        node.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self.covariances.append, 10)
+        node.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
+        assert ros.spin_until(lambda: self.publisher.get_subscription_count() > 0), "estimator never subscribed"
+        self.sequence = 0
+
+    def stamp(self):
+        self.sequence += 1
+        return self.node.get_clock().now().to_msg()
+
+    def send_until(self, msg, condition, timeout=10.0):
+        return self.ros.spin_until(condition, timeout, action=lambda: self.publisher.publish(msg))
+
+    def pose_for(self, stamp):
+        for pose in self.poses:
+            if pose.header.stamp == stamp:
+                return pose
+        return None
+
+    def errors_seen(self, fragment):
+        return [s for a in self.diagnostics for s in a.status
+                if s.level == DiagnosticStatus.ERROR and fragment in s.message]
+
+
+def test_rendered_profiles_yield_poses_with_their_stamps(ros, gauge, rng):
+    probe = Probe(ros)
+    for _ in range(15):
+        rotation, t = sample_pose(gauge, rng)
+        stamp = probe.stamp()
+        msg = cloud_from_points(render_profile(gauge, rotation, t), stamp, "profiler")
+        assert probe.send_until(msg, lambda: probe.pose_for(stamp) is not None), "no pose"
+        pose = probe.pose_for(stamp)
+        assert pose.header.frame_id == "gauge"
+        est_r, est_t = rotation_translation(pose.pose)
+        position, angle = pose_error(est_r, est_t, rotation, t)
+        assert position < 2e-6 and angle < 10e-6  # float32 rounding of the profile is all that is left
+    assert ros.spin_until(lambda: any(c.header.stamp == stamp for c in probe.covariances))
+    covariance = np.array(next(c for c in probe.covariances if c.header.stamp == stamp).pose.covariance)
+    assert np.all(np.linalg.eigvalsh(covariance.reshape(6, 6)) > 0)
+    assert ros.spin_until(lambda: any(s.level == DiagnosticStatus.OK for a in probe.diagnostics for s in a.status))
+
+
+def _cloud(points=None, **changes):
+    msg = cloud_from_points(points if points is not None else np.column_stack([np.linspace(-0.05, 0.05, 500),
+                                                                              np.full(500, 0.4)]),
+                            PointCloud2().header.stamp, "profiler")
+    for key, value in changes.items():
+        setattr(msg, key, value)
+    return msg
+
+
+def _fields(*spec):
+    return [PointField(name=n, offset=o, datatype=d, count=1) for n, o, d in spec]
+
+
+def _noise(rng):
+    x = np.linspace(-0.12, 0.12, 3200)
+    return np.column_stack([x, 0.4 + rng.uniform(-0.02, 0.02, len(x))])
+
+
+def _occluded(gauge, rng):
+    rotation, t = sample_pose(gauge, rng)
+    profile = render_profile(gauge, rotation, t)
+    profile[profile[:, 0] > true_corners(gauge, rotation, t)[3, 0] + 1e-3, 1] = np.nan
+    return profile
+
+
+def _other_gauge(gauge, rng):
+    other = heightfield_gauge("other", 0.12, 0.10, [-0.045, -0.02, 0.003, 0.025, 0.046],
+                              np.radians([-8.0, 6.0, 12.0, -4.0, -9.0]), [-0.7, 0.75, -0.7, 0.8, -0.75, 0.7])
+    return render_profile(other, *sample_pose(other, rng), noise_std=5e-6, rng=rng)
+
+
+def _with_raw(points, column, value):
+    msg = _cloud(points)
+    raw = np.frombuffer(bytes(msg.data), dtype="<f4").copy().reshape(-1, 3)
+    raw[10:12, column] = value
+    msg.data = raw.tobytes()
+    return msg
+
+
+BAD_INPUTS = {
+    "empty cloud": (lambda g, r: _cloud(width=0, row_step=0, data=b""), "empty cloud"),
+    "all NaN": (lambda g, r: _cloud(np.full((500, 2), np.nan)), "are invalid (NaN)"),
+    "row_step mismatch": (lambda g, r: _cloud(row_step=7), "row_step 7"),
+    "data length mismatch": (lambda g, r: _cloud(width=501), "row_step"),
+    "missing z field": (lambda g, r: _cloud(fields=_fields(("x", 0, 7), ("y", 4, 7))), "field 'z' is missing"),
+    "missing x field": (lambda g, r: _cloud(fields=_fields(("y", 4, 7), ("z", 8, 7))), "field 'x' is missing"),
+    "float64 field": (lambda g, r: _cloud(fields=_fields(("x", 0, 8), ("z", 8, 7))), "is FLOAT64"),
+    "big-endian": (lambda g, r: _cloud(is_bigendian=True), "big-endian"),
+    "inf values": (lambda g, r: _with_raw(None, 2, np.inf), "+-inf"),
+    "fewer corners": (lambda g, r: _cloud(_occluded(g, r)), "found 3 corners"),
+    "another gauge": (lambda g, r: _cloud(_other_gauge(g, r)), "does not match gauge"),
+    "pure noise": (lambda g, r: _cloud(_noise(r)), "corner detection"),
+    "wrong frame": (lambda g, r: _cloud(header=PointCloud2().header.__class__(frame_id="camera")), "frame_id"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_gives_no_pose_a_reason_and_a_live_node(ros, gauge, rng, case):
+    make, fragment = BAD_INPUTS[case]
+    probe = Probe(ros)
+    bad = make(gauge, rng)
+    assert probe.send_until(bad, lambda: probe.errors_seen(fragment), timeout=10.0), (
+        f"no ERROR diagnostic containing {fragment!r}; saw "
+        f"{[s.message for a in probe.diagnostics for s in a.status][-3:]}")
+    assert probe.poses == [] and probe.covariances == []
+    assert probe.estimator.rejected >= 1 and probe.estimator.published == 0
+    # the node is still working
+    rotation, t = sample_pose(gauge, rng)
+    stamp = probe.stamp()
+    good = cloud_from_points(render_profile(gauge, rotation, t), stamp, "profiler")
+    assert probe.send_until(good, lambda: probe.pose_for(stamp) is not None)
+
+
+def test_spiky_profiles_never_give_a_wrong_pose(ros, gauge, rng):
+    probe = Probe(ros)
+    checked = 0
+    for _ in range(10):
+        rotation, t = sample_pose(gauge, rng)
+        stamp = probe.stamp()
+        profile = render_profile(gauge, rotation, t, noise_std=5e-6, spike_fraction=0.01, rng=rng)
+        msg = cloud_from_points(profile, stamp, "profiler")
+        got = probe.send_until(msg, lambda: any(c.header.stamp == stamp for c in probe.covariances), timeout=1.0)
+        if not got:
+            continue  # rejected is acceptable; a wrong pose is not
+        checked += 1
+        pose = next(c for c in probe.covariances if c.header.stamp == stamp)
+        est_r, est_t = rotation_translation(pose.pose.pose)
+        d = np.concatenate([t - est_t, so3_log(rotation @ est_r.T)])
+        nees = d @ np.linalg.solve(np.array(pose.pose.covariance).reshape(6, 6), d)
+        assert nees < 30.0  # chi-square(6) beyond 30 happens with probability 4e-5
+    assert checked >= 8  # robust detection keeps nearly all of them
+
+
+def test_parameters_are_validated_at_run_time(ros):
+    probe = Probe(ros)
+    node = probe.estimator
+    assert not node.set_parameters([Parameter("refine_weighting", value="magic")])[0].successful
+    assert not node.set_parameters([Parameter("max_reprojection_error", value=5.0)])[0].successful
+    assert not node.set_parameters([Parameter("gauge_file", value="/tmp/x.yaml")])[0].successful  # read-only
+    assert node.set_parameters([Parameter("rdp_epsilon", value=5e-4)])[0].successful
+    assert node.options.corners.rdp_epsilon == 5e-4
+    descriptor = node.describe_parameter("max_reprojection_error")
+    assert descriptor.floating_point_range[0].to_value == 0.01 and descriptor.description
+
+
+def test_missing_or_invalid_gauge_refuses_to_start(ros, tmp_path):
+    with pytest.raises(GaugeError, match="nope.yaml: not found"):
+        PoseEstimatorNode(context=ros.context,
+                          parameter_overrides=[Parameter("gauge_file", value=str(tmp_path / "nope.yaml"))])
+    bad = tmp_path / "bad_gauge.yaml"
+    bad.write_text(PAPER_GAUGE.read_text().replace("0.797934427486", "-0.797934427486"))
+    result = subprocess.run([sys.executable, "-m", "profile_pose_ros.nodes.pose_estimator", "--ros-args",
+                             "-p", f"gauge_file:={bad}"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1
+    assert "bad_gauge.yaml" in result.stderr and "face 0" in result.stderr and "nz > 0" in result.stderr
+    assert Gauge.from_yaml(PAPER_GAUGE).n_ridges == 5

@@ -1,0 +1,88 @@
+"""The profile PointCloud2 layout: round trip, every malformed variant rejected with a reason, and a fuzz
+that nothing but ProfileFormatError ever escapes the decoder."""
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from profile_pose_ros.core.profile_cloud import FLOAT32, Field, ProfileFormatError, decode_profile, encode_profile
+
+FLOAT64 = 8
+
+
+def layout(points, intensity=None):
+    fields, step, data = encode_profile(points, intensity)
+    return dict(width=len(points), height=1, fields=fields, is_bigendian=False, point_step=step,
+                row_step=step * len(points), data=data)
+
+
+def sample_points(n=100):
+    x = np.linspace(-0.05, 0.05, n)
+    points = np.column_stack([x, 0.4 + 0.1 * np.abs(x)])
+    points[5] = np.nan
+    return points
+
+
+def test_round_trip_is_float32_exact():
+    points = sample_points()
+    decoded = decode_profile(**layout(points))
+    valid = np.isfinite(points[:, 0])
+    assert np.array_equal(decoded[valid], points[valid].astype(np.float32).astype(float))
+    assert np.isnan(decoded[5]).all()
+    with_intensity = layout(points, intensity=np.ones(len(points)))
+    assert with_intensity["point_step"] == 16
+    assert [f.name for f in with_intensity["fields"]] == ["x", "y", "z", "intensity"]
+    assert np.array_equal(decode_profile(**with_intensity), decoded, equal_nan=True)
+
+
+def _bad(fragment, **changes):
+    args = layout(sample_points())
+    args.update(changes)
+    with pytest.raises(ProfileFormatError, match=fragment):
+        decode_profile(**args)
+
+
+def test_rejections_say_what_is_wrong():
+    points = sample_points()
+    _bad("empty cloud", width=0, row_step=0, data=b"")
+    _bad("height", height=2)
+    _bad("big-endian", is_bigendian=True)
+    _bad("row_step", row_step=7)
+    _bad("data has", data=layout(points)["data"][:-4])
+    _bad("field 'z' is missing", fields=[Field("x", 0, FLOAT32), Field("y", 4, FLOAT32)])
+    _bad("field 'x' is FLOAT64", fields=[Field("x", 0, FLOAT64), Field("y", 4, FLOAT32), Field("z", 8, FLOAT32)])
+    _bad("does not fit", fields=[Field("x", 0, FLOAT32), Field("z", 10, FLOAT32)])
+    _bad("point_step", point_step=0, row_step=0)
+    all_nan = np.full((10, 2), np.nan)
+    with pytest.raises(ProfileFormatError, match="all 10 points are invalid"):
+        decode_profile(**layout(all_nan))
+    with pytest.raises(ProfileFormatError, match="2 points are"):
+        decode_profile(**with_column(2, [3, 7], np.inf))  # REP-117's +-inf codes are not profile points
+    with pytest.raises(ProfileFormatError, match="y != 0"):
+        decode_profile(**with_column(1, slice(None), 0.01))
+
+
+def with_column(column, rows, value):
+    """A valid layout with raw float32 values written into one column (the encoder would sanitise them)."""
+    args = layout(sample_points())
+    raw = np.frombuffer(args["data"], dtype="<f4").copy().reshape(-1, 3)
+    raw[rows, column] = value
+    args["data"] = raw.tobytes()
+    return args
+
+
+FIELD = st.builds(Field, st.sampled_from(["x", "y", "z", "intensity", "q"]), st.integers(-4, 40),
+                  st.integers(0, 10), st.integers(0, 3))
+
+
+@settings(max_examples=300, deadline=None)
+@given(width=st.integers(-2, 40), height=st.integers(-1, 3), fields=st.lists(FIELD, max_size=5),
+       big=st.booleans(), step=st.integers(-4, 40), row=st.integers(-10, 800), data=st.binary(max_size=800))
+def test_fuzz_decoder_raises_only_its_own_error(width, height, fields, big, step, row, data):
+    try:
+        points = decode_profile(width=width, height=height, fields=fields, is_bigendian=big, point_step=step,
+                                row_step=row, data=data)
+    except ProfileFormatError:
+        return
+    assert points.shape == (width, 2)
+    assert not np.isinf(points).any()
