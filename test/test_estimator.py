@@ -78,6 +78,7 @@ def test_options_validate_and_override():
 
 def test_unrefined_estimate_is_the_closed_form(gauge, rng):
     rotation, t = sample_pose(gauge, rng)
-    estimate = estimate_pose(render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), gauge, refine=False)
+    estimate = estimate_pose(render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), gauge, refine=False,
+                             max_reprojection_error=2e-3)  # the CF alone is far coarser on this gauge
     assert estimate.ok and not estimate.refined
     assert np.array_equal(estimate.R, estimate.closed_form.rotation)

@@ -7,6 +7,7 @@ import yaml
 
 from conftest import PAPER_GAUGE
 from profile_pose_ros.core import Gauge, GaugeError
+from profile_pose_ros.core.gauge_design import heightfield_gauge
 
 
 def paper_document():
@@ -118,10 +119,10 @@ def test_rejects_non_finite_offset():
 
 
 def test_rejects_ridges_crossing_in_footprint():
-    doc = paper_document()
-    doc["gauge"]["length"] = 0.2  # long enough for fanned ridges 1 and 2 to cross (near y = 0.096)
-    doc["gauge"]["width"] = 0.2
-    _reject(doc, "cross inside the footprint")
+    with pytest.raises(GaugeError, match="ridges 0 and 1 cross inside the footprint"):
+        # ridge 1 at 25 deg reaches x = -0.042 at y = -0.05, left of ridge 0 at -0.038
+        heightfield_gauge("crossing", 0.12, 0.10, [-0.038, -0.019, 0.0, 0.019, 0.038], np.radians([0, 25, -25, 0, 0]),
+                          [0.6, -0.6, 0.6, -0.6, 0.6, -0.6])
 
 
 def test_rejects_bad_dimensions_and_structure():

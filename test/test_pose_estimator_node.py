@@ -5,6 +5,7 @@ import sys
 
 import numpy as np
 import pytest
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.parameter import Parameter
@@ -184,7 +185,9 @@ def test_missing_or_invalid_gauge_refuses_to_start(ros, tmp_path):
         PoseEstimatorNode(context=ros.context,
                           parameter_overrides=[Parameter("gauge_file", value=str(tmp_path / "nope.yaml"))])
     bad = tmp_path / "bad_gauge.yaml"
-    bad.write_text(PAPER_GAUGE.read_text().replace("0.797934427486", "-0.797934427486"))
+    document = yaml.safe_load(PAPER_GAUGE.read_text())
+    document["gauge"]["faces"][0]["normal"][2] *= -1  # face 0 now faces away from the sensor
+    bad.write_text(yaml.safe_dump(document))
     result = subprocess.run([sys.executable, "-m", "profile_pose_ros.nodes.pose_estimator", "--ros-args",
                              "-p", f"gauge_file:={bad}"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 1

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import DEFAULT_PROFILER, ProfilerModel, render_profile, true_corners
+from profile_pose_ros.core.gauge_design import heightfield_gauge
 from profile_pose_ros.core.poses import LOOKING_DOWN
 from profile_pose_ros.core.render import shadow_mask
 from profile_pose_ros.core.rotation import so3_exp
@@ -62,13 +63,15 @@ def test_shadow_mask_hand_case():
     assert mirrored.tolist() == [True, False, False]
 
 
-def test_steep_view_self_occludes(gauge):
-    rotation = so3_exp(np.array([0.0, np.radians(-55.0), 0.0])) @ LOOKING_DOWN
-    t = np.array([0.0, 0.0, 0.03]) - 0.40 * rotation[:, 2]
-    with_shadow = render_profile(gauge, rotation, t)
-    without = render_profile(gauge, rotation, t, profiler=ProfilerModel(occlusion=False))
+def test_steep_view_self_occludes():
+    steep = heightfield_gauge("steep", 0.12, 0.10, [-0.038, -0.019, 0.0, 0.019, 0.038], np.radians([0, 5, 0, 5, 0]),
+                              [1.2, -1.2, 1.2, -1.2, 1.2, -1.2])  # faces at 50 deg: beta = 40 deg
+    rotation = so3_exp(np.array([0.0, np.radians(40.0), 0.0])) @ LOOKING_DOWN
+    t = np.array([0.03, 0.0, 0.03]) - 0.40 * rotation[:, 2]
+    with_shadow = render_profile(steep, rotation, t)
+    without = render_profile(steep, rotation, t, profiler=ProfilerModel(occlusion=False))
     shadowed = np.isnan(with_shadow[:, 1]) & np.isfinite(without[:, 1])
-    assert shadowed.sum() > 0  # the fan ray grazes past the ridge that the z-ray does not see
+    assert shadowed.sum() > 20  # alpha = 40 deg plus the fan angle exceeds beta: faces hide each other
 
 
 def test_noise_and_spikes_are_seedable_and_sized(gauge):
