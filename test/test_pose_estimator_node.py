@@ -193,3 +193,11 @@ def test_missing_or_invalid_gauge_refuses_to_start(ros, tmp_path):
     assert result.returncode == 1
     assert "bad_gauge.yaml" in result.stderr and "face 0" in result.stderr and "nz > 0" in result.stderr
     assert Gauge.from_yaml(PAPER_GAUGE).n_ridges == 5
+
+
+def test_params_file_loads_through_rcl(ros):
+    path = PAPER_GAUGE.parent / "pose_estimator.yaml"
+    node = ros.add(PoseEstimatorNode(context=ros.context, cli_args=["--ros-args", "--params-file", str(path)]))
+    assert node.get_parameter("rdp_epsilon").value == 0.0003
+    assert node.get_parameter("max_face_angle").value == 1.2217
+    assert node.gauge.name == "paper_n5"

@@ -94,6 +94,14 @@ class NodeRun:
                 raise RuntimeError(f"pose_estimator did not come up; see {log_path}")
             self.executor.spin_once(timeout_sec=0.05)
 
+    def warm_up(self, points: np.ndarray, timeout: float = 30.0) -> None:
+        """Publish until the first pose comes back: matching is not complete on both sides until then."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.estimate(points, timeout=0.2)[0] is not None:
+                return
+        raise RuntimeError("pose_estimator never answered a profile")
+
     def _on_pose(self, msg) -> None:
         self.poses[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = (msg, time.perf_counter())
 
@@ -133,6 +141,7 @@ def run_node(gauge: Gauge, gauge_file: Path, poses, noise_std: float, rng: np.ra
 
     run = NodeRun(gauge_file, log_path)
     try:
+        run.warm_up(render_profile(gauge, *poses[0]))
         out = {"pos": [], "rot": [], "latency": [], "missing": 0}
         for rotation, translation in poses:
             pose, latency = run.estimate(render_profile(gauge, rotation, translation, noise_std=noise_std, rng=rng))
@@ -201,7 +210,7 @@ def main(argv=None) -> int:
     results["noisy"] = {"stats": stats, "failures": noisy_failures, "nees_mean": nees, "total_ms": total}
 
     if not args.no_node:
-        print(f"\nthrough the pose_estimator node (own process, float32 PointCloud2 over DDS) ...", flush=True)
+        print("\nthrough the pose_estimator node (own process, float32 PointCloud2 over DDS) ...", flush=True)
         node_rows = []
         for label, noise in (("noise-free", 0.0), (f"{args.noise * 1e6:g} um noise", args.noise)):
             got = run_node(gauge, gauge_file, poses, noise, rng, out / f"pose_estimator_{noise * 1e6:g}um.log")
