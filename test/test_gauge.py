@@ -142,6 +142,12 @@ def test_file_errors_name_the_file(tmp_path):
     bad.write_text("gauge: [unclosed\n")
     with pytest.raises(GaugeError, match="bad.yaml: not valid YAML"):
         Gauge.from_yaml(bad)
+    with pytest.raises(GaugeError, match="cannot be read"):
+        Gauge.from_yaml(tmp_path)  # a directory: exists but cannot be read as a file (root ignores chmod)
+    undecodable = tmp_path / "binary.yaml"
+    undecodable.write_bytes(b"\xff\xfe\x00gauge")
+    with pytest.raises(GaugeError, match="binary.yaml"):
+        Gauge.from_yaml(undecodable)
     unsafe = tmp_path / "unsafe.yaml"
     unsafe.write_text("gauge: !!python/object/apply:os.system ['true']\n")
     with pytest.raises(GaugeError, match="unsafe.yaml"):

@@ -60,6 +60,8 @@ class Gauge:
             raise GaugeError(f"gauge file {path}: not found") from None
         except OSError as exc:
             raise GaugeError(f"gauge file {path}: cannot be read ({exc.strerror or exc})") from None
+        except UnicodeDecodeError as exc:
+            raise GaugeError(f"gauge file {path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
         try:
             document = yaml.safe_load(text)
         except yaml.YAMLError as exc:
