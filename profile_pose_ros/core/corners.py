@@ -16,6 +16,8 @@ import numpy as np
 
 from .rdp import rdp_vertices
 
+ROBUST_PASSES = 4  # fit, reject outliers, refit: converges in 2-3 passes on spiky profiles
+
 
 @dataclass(frozen=True)
 class CornerOptions:
@@ -73,6 +75,29 @@ class CornerResult:
         return self.jacobian @ np.diag(variance) @ self.jacobian.T
 
 
+# Failure reasons, shared with the compiled path (fast.py) so both say exactly the same.
+REASON_X_NOT_INCREASING = "profile x values are not strictly increasing"
+REASON_CORNERS_NOT_INCREASING = "corners are not in increasing x order"
+
+
+def reason_too_few_points(n_valid: int, n_corners: int, needed: int) -> str:
+    return f"only {n_valid} valid points; {n_corners + 1} faces need at least {needed}"
+
+
+def reason_steep_segment(k: int, x_mean: float, options: "CornerOptions") -> str:
+    return (f"segment {k} at x = {x_mean * 1e3:.1f} mm is steeper than "
+            f"{math.degrees(options.max_face_angle):.0f} deg between faces")
+
+
+def reason_corner_count(n_faces: int, n_corners: int) -> str:
+    return f"found {max(n_faces - 1, 0)} corners ({n_faces} faces); the gauge has {n_corners}"
+
+
+def reason_corner_not_between(i: int, x: float, left_end: float, right_start: float) -> str:
+    return (f"corner {i} at x = {x * 1e3:.2f} mm is not between its faces "
+            f"({left_end * 1e3:.2f}..{right_start * 1e3:.2f} mm)")
+
+
 def fit_line(points: np.ndarray, first: int, last: int, options: CornerOptions) -> LineFit:
     """Least-squares line over points[first..last] after trimming, with optional outlier rejection."""
     count = last - first + 1
@@ -83,7 +108,8 @@ def fit_line(points: np.ndarray, first: int, last: int, options: CornerOptions) 
     x, z = seg[:, 0], seg[:, 1]
     keep = np.ones(len(seg), dtype=bool)
     fit = LineFit(first, last)
-    for _ in range(4 if options.robust else 1):
+    passes = ROBUST_PASSES if options.robust else 1
+    for iteration in range(passes):
         xs, zs = x[keep], z[keep]
         x_mean = xs.mean()
         dx = xs - x_mean
@@ -94,7 +120,7 @@ def fit_line(points: np.ndarray, first: int, last: int, options: CornerOptions) 
         slope = float(dx @ (zs - z_mean)) / sxx
         fit = LineFit(first, last, slope, float(x_mean), float(z_mean), sxx, int(keep.sum()),
                       x_min=float(points[first, 0]), x_max=float(points[last, 0]))
-        if not options.robust:
+        if iteration == passes - 1:
             break
         residual = z - (slope * (x - x_mean) + z_mean)
         scale = 1.4826 * np.median(np.abs(residual[keep]))
@@ -149,9 +175,9 @@ def detect_corners(points: np.ndarray, n_corners: int, options: CornerOptions = 
     pts = points[valid]
     needed = (n_corners + 1) * options.min_segment_points
     if len(pts) < needed:
-        return CornerResult(False, f"only {len(pts)} valid points; {n_corners + 1} faces need at least {needed}")
+        return CornerResult(False, reason_too_few_points(len(pts), n_corners, needed))
     if np.any(np.diff(pts[:, 0]) <= 0):
-        return CornerResult(False, "profile x values are not strictly increasing")
+        return CornerResult(False, REASON_X_NOT_INCREASING)
 
     vertices = rdp_vertices(pts, options.rdp_epsilon)
     lines = _merge_collinear(pts, _segments(pts, vertices, options), options)
@@ -161,11 +187,9 @@ def detect_corners(points: np.ndarray, n_corners: int, options: CornerOptions = 
         lines.pop()
     for k, line in enumerate(lines):
         if abs(line.angle) > options.max_face_angle:
-            return CornerResult(False, f"segment {k} at x = {line.x_mean * 1e3:.1f} mm is steeper than "
-                                       f"{math.degrees(options.max_face_angle):.0f} deg between faces")
+            return CornerResult(False, reason_steep_segment(k, line.x_mean, options))
     if len(lines) != n_corners + 1:
-        return CornerResult(False, f"found {max(len(lines) - 1, 0)} corners ({len(lines)} faces); the gauge "
-                                   f"has {n_corners}")
+        return CornerResult(False, reason_corner_count(len(lines), n_corners))
 
     corners = np.empty((n_corners, 2))
     jacobian = np.zeros((2 * n_corners, 2 * (n_corners + 1)))
@@ -173,10 +197,9 @@ def detect_corners(points: np.ndarray, n_corners: int, options: CornerOptions = 
         corners[i], jacobian[2 * i:2 * i + 2, 2 * i:2 * i + 4] = intersect(a, b)
         low, high = a.x_max - options.max_corner_offset, b.x_min + options.max_corner_offset
         if not low <= corners[i, 0] <= high or not np.isfinite(corners[i]).all():
-            return CornerResult(False, f"corner {i} at x = {corners[i, 0] * 1e3:.2f} mm is not between its faces "
-                                       f"({a.x_max * 1e3:.2f}..{b.x_min * 1e3:.2f} mm)")
+            return CornerResult(False, reason_corner_not_between(i, corners[i, 0], a.x_max, b.x_min))
     if np.any(np.diff(corners[:, 0]) <= 0):
-        return CornerResult(False, "corners are not in increasing x order")
+        return CornerResult(False, REASON_CORNERS_NOT_INCREASING)
 
     used = sum(line.n_used - 2 for line in lines)
     rms = math.sqrt(sum(line.sigma ** 2 * (line.n_used - 2) for line in lines) / max(1, used))

@@ -64,32 +64,56 @@ def _ros_covariance(rotation: np.ndarray, local: np.ndarray) -> np.ndarray:
     return transform @ local @ transform.T
 
 
+REASON_NOT_FINITE = "pose is not finite"
+
+
+def reason_reprojection(error: float, gauge: Gauge, options: EstimatorOptions) -> str:
+    return (f"reprojection error {error * 1e6:.1f} um exceeds {options.max_reprojection_error * 1e6:.1f} um "
+            f"(profile does not match gauge '{gauge.name}')")
+
+
+def reason_outside(i: int, x: float, y: float, gauge: Gauge) -> str:
+    return (f"corner {i} maps to ({x * 1e3:.1f}, {y * 1e3:.1f}) mm, outside gauge "
+            f"'{gauge.name}' ({gauge.width * 1e3:.0f} x {gauge.length * 1e3:.0f} mm)")
+
+
 def _check(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, options: EstimatorOptions) -> str:
     if not (np.all(np.isfinite(solution.rotation)) and np.all(np.isfinite(solution.translation))):
-        return "pose is not finite"
+        return REASON_NOT_FINITE
     error = solution.reprojection_error
     if not error <= options.max_reprojection_error:
-        return (f"reprojection error {error * 1e6:.1f} um exceeds {options.max_reprojection_error * 1e6:.1f} um "
-                f"(profile does not match gauge '{gauge.name}')")
+        return reason_reprojection(error, gauge, options)
     mapped = corners[:, :1] * solution.rotation[:, 0] + corners[:, 1:] * solution.rotation[:, 2] + solution.translation
     half = np.array([gauge.width, gauge.length]) / 2 + options.footprint_margin
     outside = np.nonzero(np.any(np.abs(mapped[:, :2]) > half, axis=1))[0]
     if len(outside):
         i = int(outside[0])
-        return (f"corner {i} maps to ({mapped[i, 0] * 1e3:.1f}, {mapped[i, 1] * 1e3:.1f}) mm, outside gauge "
-                f"'{gauge.name}' ({gauge.width * 1e3:.0f} x {gauge.length * 1e3:.0f} mm)")
+        return reason_outside(i, mapped[i, 0], mapped[i, 1], gauge)
     return ""
 
 
-def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | None = None,
-                  **overrides) -> PoseEstimate:
+def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | None = None, *,
+                  backend: str = "fast", **overrides) -> PoseEstimate:
     """Estimate the profiler pose from one profile ((N, 2) [x, z] in metres, NaN = invalid).
 
-    Keyword overrides are any EstimatorOptions or CornerOptions field, e.g. refine=False.
+    backend "fast" is the compiled path (core/fast.py) used at run time; "numpy" is the readable
+    reference it is tested against. Keyword overrides are any EstimatorOptions or CornerOptions
+    field, e.g. refine=False.
     """
     options = options or EstimatorOptions()
     if overrides:
         options = options.with_changes(**overrides)
+    if backend == "fast":
+        from .fast_wrapper import estimate_fast
+
+        return estimate_fast(points, gauge, options)
+    if backend != "numpy":
+        raise ValueError(f"backend must be 'fast' or 'numpy', got {backend!r}")
+    return estimate_plain(points, gauge, options)
+
+
+def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
+    """The numpy reference implementation, stage by stage, with per-stage timings."""
     timings = {}
     start = time.perf_counter()
     found = detect_corners(points, gauge.n_ridges, options.corners)

@@ -32,6 +32,13 @@ class SolverError(ArithmeticError):
     """The corners do not determine a pose (degenerate geometry)."""
 
 
+REASON_CF_DEGENERATE = "closed form produced a degenerate rotation"
+
+
+def reason_cf_rank(n: int, rank: int) -> str:
+    return f"closed form is underdetermined with {n} corners (rank {rank} < 9)"
+
+
 def corner_residuals(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
     mapped = corners[:, :1] * rotation[:, 0] + corners[:, 1:] * rotation[:, 2] + translation
     return np.column_stack([
@@ -54,14 +61,14 @@ def closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
     b[1::2] = gauge.q[:, 2]
     x, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
     if rank < 9:
-        raise SolverError(f"closed form is underdetermined with {n} corners (rank {rank} < 9)")
+        raise SolverError(reason_cf_rank(n, rank))
     m = x.reshape(3, 3)  # rows m_1..m_3 of M = [r1 r3 t]
     r1, r3, t_hat = m[:, 0], m[:, 1], m[:, 2]
     r_hat = np.column_stack([r1, np.cross(r3, r1), r3])
     rotation = nearest_rotation(r_hat)
     norm_hat = np.linalg.norm(r_hat)
     if not np.isfinite(norm_hat) or norm_hat == 0:
-        raise SolverError("closed form produced a degenerate rotation")
+        raise SolverError(REASON_CF_DEGENERATE)
     translation = np.linalg.norm(rotation) / norm_hat * t_hat
     return PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation))
 
@@ -87,6 +94,11 @@ def residual_covariance(gauge: Gauge, rotation: np.ndarray, corner_covariance: n
         c = np.array([[1.0, -gauge.u[i], 0.0], [0.0, -gauge.w[i], 1.0]])
         mapping[2 * i:2 * i + 2, 2 * i:2 * i + 2] = c @ plane
     return mapping @ corner_covariance @ mapping.T
+
+
+POLISH_STEPS = 4
+POLISH_COST_TOLERANCE = 1e-9
+POLISH_STEP_TOLERANCE = 1e-12  # m or rad: the next Gauss-Newton step would be far below this
 
 
 @dataclass(frozen=True)
@@ -123,14 +135,30 @@ def refine(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covari
         new_r = corner_residuals(gauge, corners, new_rotation, new_translation).ravel()
         new_cost = new_r @ weight @ new_r
         if new_cost <= cost:
+            converged = cost - new_cost <= POLISH_COST_TOLERANCE * cost
             rotation, translation, r, cost = new_rotation, new_translation, new_r, new_cost
             damping = max(damping / 10.0, 1e-12)
-            if np.max(np.abs(step)) < 1e-13:
+            if converged or np.max(np.abs(step)) < 1e-13:
                 break
         else:
             damping *= 10.0
-            if damping > 1e8:
-                break
+            if damping > 1e8 or new_cost - cost <= POLISH_COST_TOLERANCE * cost:
+                break  # at the cost's rounding floor: the polish below finishes the job
+    # Polish: LM's damping leaves the weak direction slightly short, and near the minimum the cost can
+    # no longer tell steps apart (micrometre residuals, weights ~1e12). Undamped Gauss-Newton steps
+    # converge to the minimiser itself, accepted unless they raise the cost beyond rounding.
+    for _ in range(POLISH_STEPS if max_iterations else 0):
+        jac = residual_jacobian(gauge, corners, rotation)
+        step = np.linalg.solve(jac.T @ weight @ jac, -(jac.T @ weight @ r))
+        new_rotation = rotation @ so3_exp(step[:3])
+        new_translation = translation + step[3:]
+        new_r = corner_residuals(gauge, corners, new_rotation, new_translation).ravel()
+        new_cost = new_r @ weight @ new_r
+        if new_cost > cost * (1.0 + POLISH_COST_TOLERANCE):
+            break
+        rotation, translation, r, cost = new_rotation, new_translation, new_r, new_cost
+        if np.max(np.abs(step)) < POLISH_STEP_TOLERANCE:
+            break
     jac = residual_jacobian(gauge, corners, rotation)
     if have_cov:
         sigma_r = residual_covariance(gauge, rotation, corner_covariance)

@@ -19,6 +19,7 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 
 from ..core.estimator import WEIGHTINGS, EstimatorOptions, estimate_pose
+from ..core.fast_wrapper import warm_up
 from ..core.gauge import Gauge, GaugeError
 from ..core.profile_cloud import ProfileFormatError
 from ..resources import DEFAULT_GAUGE, config_path
@@ -72,6 +73,7 @@ class PoseEstimatorNode(Node):
         self.gauge_file = self.values["gauge_file"] or str(config_path(DEFAULT_GAUGE))
         self.gauge = Gauge.from_yaml(self.gauge_file)  # GaugeError: main() reports it and exits
         self.options = options_from(self.values)
+        compile_s = warm_up(self.gauge, self.options)  # compile (or load) before the first profile
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.pose_pub = self.create_publisher(PoseStamped, "pose", 10)
@@ -84,7 +86,8 @@ class PoseEstimatorNode(Node):
         self.window = {"received": 0, "rejected": 0, "busy": 0.0, "start": time.monotonic()}
         self.last_error = ""
         self.last_reprojection_error = float("nan")
-        self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}")
+        self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}; "
+                               f"estimator ready in {compile_s:.2f} s")
 
     # ------------------------------------------------------------------ parameters
     def _on_set_parameters(self, parameters) -> SetParametersResult:

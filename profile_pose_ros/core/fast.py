@@ -1,0 +1,768 @@
+"""The estimator compiled with numba: the runtime path of estimate_pose.
+
+Step for step the same algorithm as the readable numpy modules (rdp.py, corners.py, solver.py,
+estimator.py), which remain the reference: tests require both to agree within 1e-12 m. One call does
+detection, closed form, refinement and checks, so a profile costs one dispatch from Python. Everything
+is compiled ahead of the first profile (`warm_up`), and cached on disk where the package is writable.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .solver import POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS
+
+JIT = dict(cache=True, error_model="numpy", nogil=True)
+
+# status codes (the Python wrapper turns them into reasons)
+OK = 0
+TOO_FEW_POINTS = 2
+X_NOT_INCREASING = 3
+STEEP_SEGMENT = 4
+WRONG_CORNER_COUNT = 5
+CORNER_NOT_BETWEEN = 6
+CORNERS_NOT_INCREASING = 7
+CF_RANK = 8
+CF_DEGENERATE = 9
+NOT_FINITE = 11
+REPROJECTION = 12
+OUTSIDE_FOOTPRINT = 13
+SINGULAR = 14
+
+# option vector layout
+O_EPS, O_TRIM, O_MINSEG, O_MINANGLE, O_MAXFACE, O_MAXOFF, O_ROBUST, O_THR, O_FLOOR, O_NOISE, O_SIGFLOOR, \
+    O_WEIGHTED, O_REFINE, O_MAXIT, O_MAXREPROJ, O_MARGIN, O_PASSES = range(17)
+N_OPTIONS = 17
+
+
+# ----------------------------------------------------------------------------- corner detection
+@njit(**JIT)
+def _rdp(px, pz, epsilon, keep, stack, scratch):
+    n = px.shape[0]
+    keep[:n] = False
+    keep[0] = True
+    keep[n - 1] = True
+    top = 0
+    stack[0] = 0
+    stack[1] = n - 1
+    top = 1
+    while top > 0:
+        top -= 1
+        first = stack[2 * top]
+        last = stack[2 * top + 1]
+        if last - first < 2:
+            continue
+        ax = px[first]
+        az = pz[first]
+        c0 = px[last] - ax
+        c1 = pz[last] - az
+        length = math.hypot(c0, c1)
+        # argmax of |cross| is argmax of the distance (length is constant): no division per point
+        best = -1.0
+        split = -1
+        if length > 0:
+            # two passes: |cross| vectorises, the argmax then only compares
+            for i in range(first + 1, last):
+                scratch[i] = abs(c0 * (pz[i] - az) - c1 * (px[i] - ax))
+            for i in range(first + 1, last):
+                if scratch[i] > best:
+                    best = scratch[i]
+                    split = i
+            best = best / length
+        else:
+            for i in range(first + 1, last):
+                d = math.hypot(px[i] - ax, pz[i] - az)
+                if d > best:
+                    best = d
+                    split = i
+        if best > epsilon:
+            keep[split] = True
+            stack[2 * top] = first
+            stack[2 * top + 1] = split
+            stack[2 * top + 2] = split
+            stack[2 * top + 3] = last
+            top += 2
+
+
+@njit(**JIT)
+def _fit_line(px, pz, first, last, opt, out, k):
+    """Fill out[k] = (first, last, slope, x_mean, z_mean, sxx, n_used, sigma, x_min, x_max)."""
+    count = last - first + 1
+    trim = int(opt[O_TRIM] * count)
+    lo = first + trim
+    hi = last - trim + 1
+    if hi - lo < 2:
+        lo = first
+        hi = last + 1
+    m = hi - lo
+    x = px[lo:hi]
+    z = pz[lo:hi]
+    keep = np.ones(m, dtype=np.bool_)
+    new_keep = np.empty(m, dtype=np.bool_)
+    absres = np.empty(m)
+    slope = 0.0
+    x_mean = 0.0
+    z_mean = 0.0
+    sxx = 0.0
+    n_used = 0
+    passes = int(opt[O_PASSES]) if opt[O_ROBUST] > 0 else 1
+    for iteration in range(passes):
+        cnt = 0
+        sx = 0.0
+        sz = 0.0
+        for i in range(m):
+            if keep[i]:
+                cnt += 1
+                sx += x[i]
+                sz += z[i]
+        xm = sx / cnt
+        zm = sz / cnt
+        s = 0.0
+        sxz = 0.0
+        for i in range(m):
+            if keep[i]:
+                dx = x[i] - xm
+                s += dx * dx
+                sxz += dx * (z[i] - zm)
+        if s <= 0:
+            break
+        sl = sxz / s
+        slope, x_mean, z_mean, sxx, n_used = sl, xm, zm, s, cnt
+        if iteration == passes - 1:
+            break
+        na = 0
+        for i in range(m):
+            r = z[i] - (slope * (x[i] - x_mean) + z_mean)
+            if keep[i]:
+                absres[na] = abs(r)
+                na += 1
+        scale = 1.4826 * np.median(absres[:na])
+        limit = max(opt[O_THR] * scale, opt[O_FLOOR])
+        same = True
+        total = 0
+        for i in range(m):
+            r = z[i] - (slope * (x[i] - x_mean) + z_mean)
+            new_keep[i] = abs(r) <= limit
+            if new_keep[i]:
+                total += 1
+            if new_keep[i] != keep[i]:
+                same = False
+        if same or total < 2:
+            break
+        keep[:] = new_keep
+    sigma = 0.0
+    if n_used > 2:
+        ss = 0.0
+        for i in range(m):
+            if keep[i]:
+                r = z[i] - (slope * (x[i] - x_mean) + z_mean)
+                ss += r * r
+        sigma = math.sqrt(ss / (n_used - 2))
+    out[k, 0] = first
+    out[k, 1] = last
+    out[k, 2] = slope
+    out[k, 3] = x_mean
+    out[k, 4] = z_mean
+    out[k, 5] = sxx
+    out[k, 6] = n_used
+    out[k, 7] = sigma
+    out[k, 8] = px[first]
+    out[k, 9] = px[last]
+
+
+@njit(**JIT)
+def _detect(points, n_corners, opt, corners, jac, line_var, info):
+    """Corner detection; returns (status, n_lines, fit_rms). info carries numbers for the reason."""
+    n_all = points.shape[0]
+    px = np.empty(n_all)
+    pz = np.empty(n_all)
+    n = 0
+    for i in range(n_all):
+        if math.isfinite(points[i, 0]) and math.isfinite(points[i, 1]):
+            px[n] = points[i, 0]
+            pz[n] = points[i, 1]
+            n += 1
+    px = px[:n]
+    pz = pz[:n]
+    min_seg = int(opt[O_MINSEG])
+    needed = (n_corners + 1) * min_seg
+    if n < needed:
+        info[0] = n
+        info[1] = needed
+        return TOO_FEW_POINTS, 0, np.nan
+    for i in range(n - 1):
+        if px[i + 1] - px[i] <= 0:
+            return X_NOT_INCREASING, 0, np.nan
+    keep = np.empty(n, dtype=np.bool_)
+    stack = np.empty(2 * n + 4, dtype=np.int64)
+    _rdp(px, pz, opt[O_EPS], keep, stack, np.empty(n))
+    n_vertices = 0
+    for i in range(n):
+        if keep[i]:
+            n_vertices += 1
+    lines = np.empty((max(n_vertices - 1, 1), 10))
+    count = 0
+    prev = -1
+    for i in range(n):
+        if keep[i]:
+            if prev >= 0 and i - prev + 1 >= min_seg:
+                _fit_line(px, pz, prev, i, opt, lines, count)
+                count += 1
+            prev = i
+    # merge nearly collinear neighbours, closest pair first
+    while count > 1:
+        best = np.inf
+        j = -1
+        for k in range(count - 1):
+            a = lines[k, 2]
+            b = lines[k + 1, 2]
+            gap = abs(math.atan((a - b) / (1.0 + a * b)))
+            if gap < best:
+                best = gap
+                j = k
+        if not best < opt[O_MINANGLE]:
+            break
+        _fit_line(px, pz, int(lines[j, 0]), int(lines[j + 1, 1]), opt, lines, j)
+        for k in range(j + 1, count - 1):
+            lines[k, :] = lines[k + 1, :]
+        count -= 1
+    start = 0
+    while start < count and abs(math.atan(lines[start, 2])) > opt[O_MAXFACE]:
+        start += 1
+    stop = count
+    while stop > start and abs(math.atan(lines[stop - 1, 2])) > opt[O_MAXFACE]:
+        stop -= 1
+    for k in range(start, stop):
+        if abs(math.atan(lines[k, 2])) > opt[O_MAXFACE]:
+            info[0] = k - start
+            info[1] = lines[k, 3]
+            return STEEP_SEGMENT, 0, np.nan
+    n_lines = stop - start
+    if n_lines != n_corners + 1:
+        info[0] = max(n_lines - 1, 0)
+        info[1] = n_lines
+        return WRONG_CORNER_COUNT, 0, np.nan
+    jac[:, :] = 0.0
+    for i in range(n_corners):
+        a = lines[start + i]
+        b = lines[start + i + 1]
+        dm = a[2] - b[2]
+        ba = a[4] - a[2] * a[3]
+        bb = b[4] - b[2] * b[3]
+        x = (bb - ba) / dm
+        z = a[2] * (x - a[3]) + a[4]
+        corners[i, 0] = x
+        corners[i, 1] = z
+        d0 = (a[3] - x) / dm
+        d1 = -1.0 / dm
+        d2 = (x - b[3]) / dm
+        d3 = 1.0 / dm
+        jac[2 * i, 2 * i] = d0
+        jac[2 * i, 2 * i + 1] = d1
+        jac[2 * i, 2 * i + 2] = d2
+        jac[2 * i, 2 * i + 3] = d3
+        jac[2 * i + 1, 2 * i] = a[2] * d0 + (x - a[3])
+        jac[2 * i + 1, 2 * i + 1] = a[2] * d1 + 1.0
+        jac[2 * i + 1, 2 * i + 2] = a[2] * d2
+        jac[2 * i + 1, 2 * i + 3] = a[2] * d3
+        low = a[9] - opt[O_MAXOFF]
+        high = b[8] + opt[O_MAXOFF]
+        if not (low <= x <= high) or not (math.isfinite(x) and math.isfinite(z)):
+            info[0] = i
+            info[1] = x
+            info[2] = a[9]
+            info[3] = b[8]
+            return CORNER_NOT_BETWEEN, 0, np.nan
+    for i in range(n_corners - 1):
+        if corners[i + 1, 0] - corners[i, 0] <= 0:
+            return CORNERS_NOT_INCREASING, 0, np.nan
+    used = 0.0
+    ss = 0.0
+    for k in range(n_lines):
+        line = lines[start + k]
+        sigma = opt[O_NOISE] if opt[O_NOISE] > 0 else max(line[7], opt[O_SIGFLOOR])
+        line_var[2 * k] = sigma * sigma / line[5]
+        line_var[2 * k + 1] = sigma * sigma / line[6]
+        used += line[6] - 2
+        ss += line[7] * line[7] * (line[6] - 2)
+    return OK, n_lines, math.sqrt(ss / max(1.0, used))
+
+
+# ----------------------------------------------------------------------------- pose
+@njit(**JIT)
+def _residuals(q, u, w, corners, rot, t, r):
+    for i in range(corners.shape[0]):
+        px = corners[i, 0]
+        pz = corners[i, 1]
+        mx = px * rot[0, 0] + pz * rot[0, 2] + t[0]
+        my = px * rot[1, 0] + pz * rot[1, 2] + t[1]
+        mz = px * rot[2, 0] + pz * rot[2, 2] + t[2]
+        r[2 * i] = mx - u[i] * my - q[i, 0]
+        r[2 * i + 1] = mz - w[i] * my - q[i, 2]
+
+
+@njit(**JIT)
+def _jacobian(u, w, corners, rot, jac):
+    """d r / d [delta, t] for R <- R exp([delta]x): rows C_i [-R [p]x, I]."""
+    for i in range(corners.shape[0]):
+        px = corners[i, 0]
+        pz = corners[i, 1]
+        # R [p]x with p = (px, 0, pz): columns = R @ [[0,-pz,0],[pz,0,-px],[0,px,0]]
+        for row in range(3):
+            m0 = rot[row, 1] * pz
+            m1 = -rot[row, 0] * pz + rot[row, 2] * px
+            m2 = -rot[row, 1] * px
+            if row == 0:
+                a0, a1, a2 = m0, m1, m2
+            elif row == 1:
+                b0, b1, b2 = m0, m1, m2
+            else:
+                c0, c1, c2 = m0, m1, m2
+        jac[2 * i, 0] = -(a0 - u[i] * b0)
+        jac[2 * i, 1] = -(a1 - u[i] * b1)
+        jac[2 * i, 2] = -(a2 - u[i] * b2)
+        jac[2 * i + 1, 0] = -(c0 - w[i] * b0)
+        jac[2 * i + 1, 1] = -(c1 - w[i] * b1)
+        jac[2 * i + 1, 2] = -(c2 - w[i] * b2)
+        jac[2 * i, 3] = 1.0
+        jac[2 * i, 4] = -u[i]
+        jac[2 * i, 5] = 0.0
+        jac[2 * i + 1, 3] = 0.0
+        jac[2 * i + 1, 4] = -w[i]
+        jac[2 * i + 1, 5] = 1.0
+
+
+@njit(**JIT)
+def _residual_covariance(u, w, rot, corner_cov, out):
+    """out = M C M^T with M block-diagonal, M_i = C_i R[:, (0, 2)] (see solver.residual_covariance)."""
+    n = u.shape[0]
+    m = np.empty((n, 2, 2))
+    for i in range(n):
+        for col in range(2):
+            c = 0 if col == 0 else 2
+            m[i, 0, col] = rot[0, c] - u[i] * rot[1, c]
+            m[i, 1, col] = rot[2, c] - w[i] * rot[1, c]
+    for i in range(n):
+        for j in range(n):
+            for a in range(2):
+                for b in range(2):
+                    acc = 0.0
+                    for c in range(2):
+                        for d in range(2):
+                            acc += m[i, a, c] * corner_cov[2 * i + c, 2 * j + d] * m[j, b, d]
+                    out[2 * i + a, 2 * j + b] = acc
+
+
+@njit(**JIT)
+def _cholesky(a, low):
+    """low = L with a = L L^T; False if a is not positive definite."""
+    n = a.shape[0]
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= low[j, k] * low[j, k]
+        if not s > 0:
+            return False
+        low[j, j] = math.sqrt(s)
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s -= low[i, k] * low[j, k]
+            low[i, j] = s / low[j, j]
+        for i in range(j):
+            low[i, j] = 0.0
+    return True
+
+
+@njit(**JIT)
+def _cholesky_solve(low, b, x):
+    n = b.shape[0]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= low[i, k] * x[k]
+        x[i] = s / low[i, i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= low[k, i] * x[k]
+        x[i] = s / low[i, i]
+
+
+@njit(**JIT)
+def _spd_inverse(a, out):
+    n = a.shape[0]
+    low = np.empty((n, n))
+    if not _cholesky(a, low):
+        return False
+    e = np.zeros(n)
+    col = np.empty(n)
+    for j in range(n):
+        e[:] = 0.0
+        e[j] = 1.0
+        _cholesky_solve(low, e, col)
+        out[:, j] = col
+    return True
+
+
+@njit(**JIT)
+def _normal_equations(jac, weight, r, jw, hessian, gradient):
+    n2 = jac.shape[0]
+    for a in range(6):
+        for j in range(n2):
+            acc = 0.0
+            for i in range(n2):
+                acc += jac[i, a] * weight[i, j]
+            jw[a, j] = acc
+    for a in range(6):
+        for b in range(6):
+            acc = 0.0
+            for j in range(n2):
+                acc += jw[a, j] * jac[j, b]
+            hessian[a, b] = acc
+        acc = 0.0
+        for j in range(n2):
+            acc += jw[a, j] * r[j]
+        gradient[a] = acc
+
+
+@njit(**JIT)
+def _matmul3(a, b, out):
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+
+
+@njit(**JIT)
+def _so3_exp(v, out):
+    theta2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    kk = np.empty((3, 3))
+    _matmul3(k, k, kk)
+    if theta2 < 1e-16:
+        a, b = 1.0, 0.5
+    else:
+        theta = math.sqrt(theta2)
+        a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta2
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = (1.0 if i == j else 0.0) + a * k[i, j] + b * kk[i, j]
+
+
+@njit(**JIT)
+def _quadratic(r, weight):
+    n = r.shape[0]
+    acc = 0.0
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += weight[i, j] * r[j]
+        acc += r[i] * s
+    return acc
+
+
+@njit(**JIT)
+def _householder_lstsq(a, b, x):
+    """Least-squares solution of a x = b (rows >= columns) by Householder QR; returns the numerical rank."""
+    m, n = a.shape
+    if m < n:
+        return m
+    qa = a.copy()
+    qb = b.copy()
+    for k in range(n):
+        norm = 0.0
+        for i in range(k, m):
+            norm += qa[i, k] * qa[i, k]
+        norm = math.sqrt(norm)
+        if norm == 0.0:
+            continue
+        alpha = -norm if qa[k, k] >= 0 else norm
+        v = qa[k:, k].copy()
+        v[0] -= alpha
+        vnorm2 = 0.0
+        for i in range(m - k):
+            vnorm2 += v[i] * v[i]
+        if vnorm2 == 0.0:
+            continue
+        for j in range(k, n):
+            dot = 0.0
+            for i in range(m - k):
+                dot += v[i] * qa[k + i, j]
+            f = 2.0 * dot / vnorm2
+            for i in range(m - k):
+                qa[k + i, j] -= f * v[i]
+        dot = 0.0
+        for i in range(m - k):
+            dot += v[i] * qb[k + i]
+        f = 2.0 * dot / vnorm2
+        for i in range(m - k):
+            qb[k + i] -= f * v[i]
+    biggest = 0.0
+    for k in range(n):
+        biggest = max(biggest, abs(qa[k, k]))
+    tol = np.finfo(np.float64).eps * max(m, n) * biggest
+    rank = 0
+    for k in range(n):
+        if abs(qa[k, k]) > tol:
+            rank += 1
+    if rank < n:
+        return rank
+    for i in range(n - 1, -1, -1):
+        s = qb[i]
+        for k in range(i + 1, n):
+            s -= qa[i, k] * x[k]
+        x[i] = s / qa[i, i]
+    return rank
+
+
+@njit(**JIT)
+def _closed_form(q, u, w, corners, info):
+    """Paper eqs. (9)-(14), the least squares by Householder QR. Returns (status, R, t)."""
+    n = corners.shape[0]
+    a = np.zeros((2 * n, 9))
+    b = np.empty(2 * n)
+    for i in range(n):
+        p0 = corners[i, 0]
+        p1 = corners[i, 1]
+        a[2 * i, 0] = p0
+        a[2 * i, 1] = p1
+        a[2 * i, 2] = 1.0
+        a[2 * i, 3] = -u[i] * p0
+        a[2 * i, 4] = -u[i] * p1
+        a[2 * i, 5] = -u[i]
+        a[2 * i + 1, 3] = -w[i] * p0
+        a[2 * i + 1, 4] = -w[i] * p1
+        a[2 * i + 1, 5] = -w[i]
+        a[2 * i + 1, 6] = p0
+        a[2 * i + 1, 7] = p1
+        a[2 * i + 1, 8] = 1.0
+        b[2 * i] = q[i, 0]
+        b[2 * i + 1] = q[i, 2]
+    x = np.empty(9)
+    rank = _householder_lstsq(a, b, x)
+    rot = np.empty((3, 3))
+    t = np.empty(3)
+    if rank < 9:
+        info[0] = rank
+        return CF_RANK, rot, t
+    r_hat = np.empty((3, 3))
+    for k in range(3):
+        r_hat[k, 0] = x[3 * k]
+        r_hat[k, 2] = x[3 * k + 1]
+        t[k] = x[3 * k + 2]
+    r_hat[0, 1] = r_hat[1, 2] * r_hat[2, 0] - r_hat[2, 2] * r_hat[1, 0]  # r2 = r3 x r1
+    r_hat[1, 1] = r_hat[2, 2] * r_hat[0, 0] - r_hat[0, 2] * r_hat[2, 0]
+    r_hat[2, 1] = r_hat[0, 2] * r_hat[1, 0] - r_hat[1, 2] * r_hat[0, 0]
+    norm_hat = math.sqrt(np.sum(r_hat * r_hat))
+    if not math.isfinite(norm_hat) or norm_hat == 0:
+        return CF_DEGENERATE, rot, t
+    uu, _, vt = np.linalg.svd(r_hat)
+    _matmul3(uu, vt, rot)
+    if np.linalg.det(rot) < 0:
+        for i in range(3):
+            uu[i, 2] = -uu[i, 2]
+        _matmul3(uu, vt, rot)
+    scale = math.sqrt(np.sum(rot * rot)) / norm_hat
+    for k in range(3):
+        t[k] *= scale
+    return OK, rot, t
+
+
+@njit(**JIT)
+def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, cov_out):
+    """Levenberg-Marquardt + Gauss-Newton polish on SO(3) x R^3 (see solver.refine).
+
+    Returns (status, R, t, residuals, iterations); cov_out gets the (6, 6) covariance over [delta_F, t].
+    """
+    n2 = 2 * corners.shape[0]
+    r = np.empty(n2)
+    new_r = np.empty(n2)
+    _residuals(q, u, w, corners, rot, t, r)
+    sigma_r = np.empty((n2, n2))
+    weight = np.eye(n2)
+    _residual_covariance(u, w, rot, corner_cov, sigma_r)
+    if weighted and not _spd_inverse(sigma_r, weight):
+        return SINGULAR, rot, t, r, 0
+    cost = _quadratic(r, weight)
+    damping = 1e-6
+    iterations = 0
+    jac = np.empty((n2, 6))
+    jw = np.empty((6, n2))
+    hessian = np.empty((6, 6))
+    damped = np.empty((6, 6))
+    low = np.empty((6, 6))
+    gradient = np.empty(6)
+    step = np.empty(6)
+    rstep = np.empty((3, 3))
+    new_rot = np.empty((3, 3))
+    new_t = np.empty(3)
+    polishing = False
+    total = max_iterations + (POLISH_STEPS if max_iterations > 0 else 0)
+    it = 0
+    while it < total:
+        it += 1
+        if it > max_iterations:
+            polishing = True
+        _jacobian(u, w, corners, rot, jac)
+        _normal_equations(jac, weight, r, jw, hessian, gradient)
+        damped[:, :] = hessian
+        if not polishing:
+            for k in range(6):
+                damped[k, k] += damping * hessian[k, k]
+        if not _cholesky(damped, low):
+            return SINGULAR, rot, t, r, iterations
+        for k in range(6):
+            gradient[k] = -gradient[k]
+        _cholesky_solve(low, gradient, step)
+        _so3_exp(step[:3], rstep)
+        _matmul3(rot, rstep, new_rot)
+        for k in range(3):
+            new_t[k] = t[k] + step[3 + k]
+        _residuals(q, u, w, corners, new_rot, new_t, new_r)
+        new_cost = _quadratic(new_r, weight)
+        biggest = np.max(np.abs(step))
+        if polishing:
+            if new_cost > cost * (1.0 + POLISH_COST_TOLERANCE):
+                break
+            rot, t, cost = new_rot.copy(), new_t.copy(), new_cost
+            r[:] = new_r
+            if biggest < POLISH_STEP_TOLERANCE:
+                break
+            continue
+        iterations = it
+        if new_cost <= cost:
+            converged = cost - new_cost <= POLISH_COST_TOLERANCE * cost
+            rot, t, cost = new_rot.copy(), new_t.copy(), new_cost
+            r[:] = new_r
+            damping = max(damping / 10.0, 1e-12)
+            if converged or biggest < 1e-13:
+                it = max_iterations  # go on with the polish
+        else:
+            damping *= 10.0
+            if damping > 1e8 or new_cost - cost <= POLISH_COST_TOLERANCE * cost:
+                it = max_iterations
+    _jacobian(u, w, corners, rot, jac)
+    _residual_covariance(u, w, rot, corner_cov, sigma_r)
+    if weighted and not _spd_inverse(sigma_r, weight):
+        return SINGULAR, rot, t, r, iterations
+    _normal_equations(jac, weight, r, jw, hessian, gradient)
+    bread = np.empty((6, 6))
+    if not _spd_inverse(hessian, bread):
+        return SINGULAR, rot, t, r, iterations
+    js = np.empty((6, n2))  # J^T W Sigma_r
+    for a in range(6):
+        for j in range(n2):
+            acc = 0.0
+            for i in range(n2):
+                acc += jw[a, i] * sigma_r[i, j]
+            js[a, j] = acc
+    meat = np.empty((6, 6))  # J^T W Sigma_r W J
+    for a in range(6):
+        for b in range(6):
+            acc = 0.0
+            for j in range(n2):
+                acc += js[a, j] * jw[b, j]
+            meat[a, b] = acc
+    half = np.empty((6, 6))
+    for a in range(6):
+        for b in range(6):
+            acc = 0.0
+            for k in range(6):
+                acc += bread[a, k] * meat[k, b]
+            half[a, b] = acc
+    for a in range(6):
+        for b in range(6):
+            acc = 0.0
+            for k in range(6):
+                acc += half[a, k] * bread[k, b]
+            cov_out[a, b] = acc
+    for a in range(6):
+        for b in range(a + 1, 6):
+            mean = 0.5 * (cov_out[a, b] + cov_out[b, a])
+            cov_out[a, b] = mean
+            cov_out[b, a] = mean
+    return OK, rot, t, r, iterations
+
+
+@njit(**JIT)
+def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
+             info):
+    """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error)."""
+    n = u.shape[0]
+    jac = np.empty((2 * n, 2 * (n + 1)))
+    line_var = np.empty(2 * (n + 1))
+    status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info)
+    if status != OK:
+        return status, 0, np.nan, np.nan, np.nan
+    status, rot, t = _closed_form(q, u, w, corners, info)
+    if status != OK:
+        return status, 0, fit_rms, np.nan, np.nan
+    cf_rot[:, :] = rot
+    cf_t[:] = t
+    r = np.empty(2 * n)
+    _residuals(q, u, w, corners, rot, t, r)
+    cf_err = 0.0
+    for i in range(n):
+        cf_res[i, 0] = r[2 * i]
+        cf_res[i, 1] = r[2 * i + 1]
+        cf_err += math.hypot(r[2 * i], r[2 * i + 1])
+    cf_err /= n
+    corner_cov = np.empty((2 * n, 2 * n))
+    for a in range(2 * n):
+        for b in range(2 * n):
+            acc = 0.0
+            for k in range(2 * n + 2):
+                acc += jac[a, k] * line_var[k] * jac[b, k]
+            corner_cov[a, b] = acc
+    max_it = int(opt[O_MAXIT]) if opt[O_REFINE] > 0 else 0
+    cov = np.empty((6, 6))
+    status, rot2, t2, r2, iterations = _refine(q, u, w, corners, rot, t, corner_cov, opt[O_WEIGHTED] > 0, max_it,
+                                               cov)
+    if status != OK:
+        return status, iterations, fit_rms, np.nan, cf_err
+    if opt[O_REFINE] > 0:
+        rot, t, r = rot2, t2, r2
+    err = 0.0
+    for i in range(n):
+        res_out[i, 0] = r[2 * i]
+        res_out[i, 1] = r[2 * i + 1]
+        err += math.hypot(r[2 * i], r[2 * i + 1])
+    err /= n
+    for v in rot.ravel():
+        if not math.isfinite(v):
+            return NOT_FINITE, iterations, fit_rms, err, cf_err
+    for v in t:
+        if not math.isfinite(v):
+            return NOT_FINITE, iterations, fit_rms, err, cf_err
+    if not err <= opt[O_MAXREPROJ]:
+        return REPROJECTION, iterations, fit_rms, err, cf_err
+    half_w = width / 2 + opt[O_MARGIN]
+    half_l = length / 2 + opt[O_MARGIN]
+    for i in range(n):
+        mx = corners[i, 0] * rot[0, 0] + corners[i, 1] * rot[0, 2] + t[0]
+        my = corners[i, 0] * rot[1, 0] + corners[i, 1] * rot[1, 2] + t[1]
+        if abs(mx) > half_w or abs(my) > half_l:
+            info[0] = i
+            info[1] = mx
+            info[2] = my
+            return OUTSIDE_FOOTPRINT, iterations, fit_rms, err, cf_err
+    rot_out[:, :] = rot
+    t_out[:] = t
+    # [delta_F, t] -> ROS [t, delta_G = R delta_F]: cov_ros = T cov T^T, T = [[0, I], [R, 0]]
+    rr = np.zeros((6, 6))
+    for k in range(3):
+        rr[k, 3 + k] = 1.0
+        for j in range(3):
+            rr[3 + k, j] = rot[k, j]
+    for a in range(6):
+        for b in range(6):
+            acc = 0.0
+            for i in range(6):
+                if rr[a, i] == 0.0:
+                    continue
+                for j in range(6):
+                    acc += rr[a, i] * cov[i, j] * rr[b, j]
+            cov_out[a, b] = acc
+    return OK, iterations, fit_rms, err, cf_err

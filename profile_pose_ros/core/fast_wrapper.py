@@ -1,0 +1,110 @@
+"""Python side of the compiled estimator: options packing, status codes -> reasons, warm-up."""
+from __future__ import annotations
+
+import time
+import numpy as np
+
+from . import fast
+from .corners import (REASON_CORNERS_NOT_INCREASING, ROBUST_PASSES, REASON_X_NOT_INCREASING, reason_corner_count,
+                      reason_corner_not_between, reason_steep_segment, reason_too_few_points)
+from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, reason_outside, reason_reprojection)
+from .gauge import Gauge
+from .solver import REASON_CF_DEGENERATE, PoseSolution, reason_cf_rank
+
+
+def option_vector(options: EstimatorOptions) -> np.ndarray:
+    """The options packed for the compiled code, computed once per (immutable) options object."""
+    cached = options.__dict__.get("_fast_vector")
+    if cached is not None:
+        return cached
+    c = options.corners
+    v = np.empty(fast.N_OPTIONS)
+    v[fast.O_EPS] = c.rdp_epsilon
+    v[fast.O_TRIM] = c.trim_fraction
+    v[fast.O_MINSEG] = c.min_segment_points
+    v[fast.O_MINANGLE] = c.min_corner_angle
+    v[fast.O_MAXFACE] = c.max_face_angle
+    v[fast.O_MAXOFF] = c.max_corner_offset
+    v[fast.O_ROBUST] = 1.0 if c.robust else 0.0
+    v[fast.O_THR] = c.outlier_threshold
+    v[fast.O_FLOOR] = c.min_outlier_floor
+    v[fast.O_NOISE] = options.noise_std
+    v[fast.O_SIGFLOOR] = 1e-7  # same floor as CornerResult.covariance
+    v[fast.O_WEIGHTED] = 1.0 if options.weighting == "corner_covariance" else 0.0
+    v[fast.O_REFINE] = 1.0 if options.refine else 0.0
+    v[fast.O_MAXIT] = options.max_iterations
+    v[fast.O_MAXREPROJ] = options.max_reprojection_error
+    v[fast.O_MARGIN] = options.footprint_margin
+    v[fast.O_PASSES] = ROBUST_PASSES
+    v.setflags(write=False)
+    object.__setattr__(options, "_fast_vector", v)  # frozen dataclass: cache beside the fields
+    return v
+
+
+def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptions, error: float) -> str:
+    n = gauge.n_ridges
+    detection = {
+        fast.TOO_FEW_POINTS: lambda: reason_too_few_points(int(info[0]), n, int(info[1])),
+        fast.X_NOT_INCREASING: lambda: REASON_X_NOT_INCREASING,
+        fast.STEEP_SEGMENT: lambda: reason_steep_segment(int(info[0]), info[1], options.corners),
+        fast.WRONG_CORNER_COUNT: lambda: reason_corner_count(int(info[1]), n),
+        fast.CORNER_NOT_BETWEEN: lambda: reason_corner_not_between(int(info[0]), info[1], info[2], info[3]),
+        fast.CORNERS_NOT_INCREASING: lambda: REASON_CORNERS_NOT_INCREASING,
+    }
+    if status in detection:
+        return f"corner detection: {detection[status]()}"
+    if status == fast.CF_RANK:
+        return f"closed form: {reason_cf_rank(n, int(info[0]))}"
+    if status == fast.CF_DEGENERATE:
+        return f"closed form: {REASON_CF_DEGENERATE}"
+    if status == fast.SINGULAR:
+        return "refinement: Singular matrix"
+    if status == fast.NOT_FINITE:
+        return REASON_NOT_FINITE
+    if status == fast.REPROJECTION:
+        return reason_reprojection(error, gauge, options)
+    if status == fast.OUTSIDE_FOOTPRINT:
+        return reason_outside(int(info[0]), info[1], info[2], gauge)
+    return f"internal status {status}"
+
+
+def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 2:
+        return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
+    n = gauge.n_ridges
+    corners = np.empty((n, 2))
+    rot, t, cov = np.full((3, 3), np.nan), np.full(3, np.nan), np.full((6, 6), np.nan)  # NaN unless ok
+    cf_rot, cf_t, cf_res, res = np.empty((3, 3)), np.empty(3), np.empty((n, 2)), np.empty((n, 2))
+    info = np.zeros(4)
+    start = time.perf_counter()
+    try:
+        status, iterations, fit_rms, error, cf_error = fast.estimate(
+            points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, option_vector(options), corners, rot, t,
+            cov, cf_rot, cf_t, cf_res, res, info)
+    except np.linalg.LinAlgError as exc:
+        return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
+    timings = {"total": time.perf_counter() - start}
+    if status in (fast.TOO_FEW_POINTS, fast.X_NOT_INCREASING, fast.STEEP_SEGMENT, fast.WRONG_CORNER_COUNT,
+                  fast.CORNER_NOT_BETWEEN, fast.CORNERS_NOT_INCREASING):
+        return PoseEstimate(False, _reason(status, info, gauge, options, error), timings=timings)
+    if status in (fast.CF_RANK, fast.CF_DEGENERATE):
+        return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
+    ok = status == fast.OK
+    return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
+                        corners=corners, reprojection_error=error, covariance=cov,
+                        closed_form=PoseSolution(cf_rot, cf_t, cf_res), refined=options.refine,
+                        iterations=iterations, fit_rms=fit_rms, timings=timings)
+
+
+def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
+    """Compile (or load from cache) every path before the first real profile; returns seconds taken."""
+    from .poses import sample_pose
+    from .render import render_profile
+
+    start = time.perf_counter()
+    options = options or EstimatorOptions()
+    rotation, translation = sample_pose(gauge, np.random.default_rng(0))
+    estimate_fast(render_profile(gauge, rotation, translation), gauge, options)
+    estimate_fast(np.full((10, 2), np.nan), gauge, options)  # a failure path too
+    return time.perf_counter() - start
