@@ -133,13 +133,29 @@ def _fit_line(px, pz, first, last, opt, out, k):
         if iteration == passes - 1:
             break
         na = 0
+        largest = 0.0
         for i in range(m):
-            r = z[i] - (slope * (x[i] - x_mean) + z_mean)
+            r = abs(z[i] - (slope * (x[i] - x_mean) + z_mean))
+            largest = max(largest, r)
             if keep[i]:
-                absres[na] = abs(r)
+                absres[na] = r
                 na += 1
-        scale = 1.4826 * np.median(absres[:na])
-        limit = max(opt[O_THR] * scale, opt[O_FLOOR])
+        # The rule keeps |r| <= max(thr * 1.4826 * median, floor). If that bound provably exceeds the
+        # largest residual, every point is kept and the median need not be computed: median >= c holds
+        # when fewer than half of the kept |r| are below c (exact, O(n)); rounding is monotonic.
+        c = largest / (opt[O_THR] * 1.4826)
+        all_kept = max(opt[O_THR] * (1.4826 * c), opt[O_FLOOR]) >= largest
+        if all_kept and opt[O_FLOOR] < largest:
+            below = 0
+            for i in range(na):
+                if absres[i] < c:
+                    below += 1
+            all_kept = below <= (na - 1) // 2
+        if all_kept:
+            limit = np.inf
+        else:
+            scale = 1.4826 * np.median(absres[:na])
+            limit = max(opt[O_THR] * scale, opt[O_FLOOR])
         same = True
         total = 0
         for i in range(m):
@@ -691,6 +707,9 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
              info):
     """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error)."""
     n = u.shape[0]
+    rot_out[:, :] = np.nan  # stays NaN unless a pose is accepted
+    t_out[:] = np.nan
+    cov_out[:, :] = np.nan
     jac = np.empty((2 * n, 2 * (n + 1)))
     line_var = np.empty(2 * (n + 1))
     status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info)

@@ -74,7 +74,7 @@ def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
     n = gauge.n_ridges
     corners = np.empty((n, 2))
-    rot, t, cov = np.full((3, 3), np.nan), np.full(3, np.nan), np.full((6, 6), np.nan)  # NaN unless ok
+    rot, t, cov = np.empty((3, 3)), np.empty(3), np.empty((6, 6))  # NaN-filled by fast.estimate unless ok
     cf_rot, cf_t, cf_res, res = np.empty((3, 3)), np.empty(3), np.empty((n, 2)), np.empty((n, 2))
     info = np.zeros(4)
     start = time.perf_counter()
