@@ -9,6 +9,7 @@ PACKAGE = "profile_pose_ros"
 EXECUTABLES = {
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator:main",
     "profile_pose_demo": "profile_pose_ros.tools.estimation_demo:main",
+    "profile_pose_benchmark": "profile_pose_ros.tools.benchmark:main",
 }
 
 setup(
@@ -20,7 +21,8 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
     ],
-    install_requires=["setuptools", "numpy", "scipy", "PyYAML"],
+    install_requires=["setuptools", "numpy", "scipy", "PyYAML", "numba"],
+    extras_require={"benchmark": ["opencv-python-headless"]},
     zip_safe=False,
     maintainer="profile_pose_ros maintainers",
     maintainer_email="maintainers@profile-pose-ros.org",

@@ -1,0 +1,36 @@
+"""The benchmark cannot rot: its quick mode runs end to end (speed itself is not asserted: CI is noisy),
+and its plain reference solves the same problem as the runtime path."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
+from profile_pose_ros.tools.plain_reference import estimate_reference
+
+
+def test_quick_benchmark_runs_and_reports_every_row(tmp_path):
+    exe = Path(sys.executable).parent / "profile_pose_benchmark"
+    result = subprocess.run([str(exe), "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    (report,) = tmp_path.glob("*/benchmark.json")
+    data = json.loads(report.read_text())
+    for row in ("Proposed, this package: CD", "Proposed, this package: total (one call)", "Plain reference: total",
+                "Camera-based (OpenCV): CD", "Camera-based (OpenCV): PC"):
+        assert data["stages_ms"][row]["n"] > 0, row
+        assert data["stages_ms"][row]["median"] > 0
+    assert set(data["ratios"]) == {"plain / ours (median total)", "camera / ours (median CD + PC)"}
+    assert data["data_bytes"]["profile (3200 x float32)"] == 12800
+    assert "time per measurement (ms)" in result.stdout
+
+
+def test_scipy_reference_solves_the_same_problem(gauge, rng):
+    for _ in range(20):
+        points = render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng)
+        ours = estimate_pose(points, gauge)
+        rotation, translation, _ = estimate_reference(points, gauge)
+        assert np.max(np.abs(translation - ours.t)) < 1e-7  # scipy's LM stops on its own tolerances
+        assert np.max(np.abs(rotation - ours.R)) < 1e-7
