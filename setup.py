@@ -10,6 +10,7 @@ EXECUTABLES = {
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator:main",
     "profile_pose_demo": "profile_pose_ros.tools.estimation_demo:main",
     "profile_pose_benchmark": "profile_pose_ros.tools.benchmark:main",
+    "profile_pose_node_benchmark": "profile_pose_ros.tools.node_benchmark:main",
 }
 
 setup(

@@ -67,10 +67,15 @@ def decode_profile(*, width: int, height: int, fields: Sequence[Field], is_bigen
         except (TypeError, ValueError) as exc:
             raise ProfileFormatError(f"data is not a byte buffer ({exc})") from None
 
+    aligned = point_step % 4 == 0 and all(by_name[k].offset % 4 == 0 for k in ("x", "y", "z") if k in by_name)
+    table = raw.view("<f4").reshape(width, point_step // 4) if aligned else None
+
     def column(name: str) -> np.ndarray:
+        if table is not None:  # every profile publisher we know: a strided view, no copy
+            return table[:, by_name[name].offset // 4]
         dtype = np.dtype({"names": [name], "formats": ["<f4"], "offsets": [by_name[name].offset],
                           "itemsize": point_step})
-        return raw.view(dtype)[name].astype(np.float64)
+        return raw.view(dtype)[name]
 
     x, z = column("x"), column("z")
     if "y" in by_name:
@@ -82,8 +87,9 @@ def decode_profile(*, width: int, height: int, fields: Sequence[Field], is_bigen
     infinite = np.isinf(x) | np.isinf(z)
     if infinite.any():
         raise ProfileFormatError(f"{int(infinite.sum())} points are +-inf; invalid points must be NaN")
-    points = np.column_stack([x, z])
-    points[np.isnan(points).any(axis=1)] = np.nan
+    points = np.empty((width, 2))
+    np.add(x, 0.0 * z, out=points[:, 0])  # a point is invalid if either coordinate is NaN: 0 * NaN = NaN,
+    np.add(z, 0.0 * x, out=points[:, 1])  # and no inf is left to make 0 * inf = NaN by accident
     if np.isnan(points[:, 0]).all():
         raise ProfileFormatError(f"all {width} points are invalid (NaN)")
     return points

@@ -13,9 +13,11 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 
 from ..core.estimator import WEIGHTINGS, EstimatorOptions, estimate_pose
@@ -79,11 +81,14 @@ class PoseEstimatorNode(Node):
         self.pose_pub = self.create_publisher(PoseStamped, "pose", 10)
         self.covariance_pub = self.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data)
+        # Sensor-data QoS keeps the newest profiles: a consumer that falls behind drops the oldest, and the
+        # middleware reports them here so diagnostics can say so.
+        self.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data,
+                                 event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_lost))
         self.diagnostics_timer = self.create_timer(self.values["diagnostics_period"], self._publish_diagnostics)
 
-        self.received = self.published = self.rejected = 0
-        self.window = {"received": 0, "rejected": 0, "busy": 0.0, "start": time.monotonic()}
+        self.received = self.published = self.rejected = self.lost = 0
+        self.window = self._new_window(time.monotonic())
         self.last_error = ""
         self.last_reprojection_error = float("nan")
         self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}; "
@@ -103,10 +108,20 @@ class PoseEstimatorNode(Node):
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------ profiles
+    @staticmethod
+    def _new_window(start: float) -> dict:
+        return {"received": 0, "rejected": 0, "lost": 0, "busy": 0.0, "max_age": 0.0, "start": start}
+
+    def _on_lost(self, info) -> None:
+        self.lost += info.total_count_change
+        self.window["lost"] += info.total_count_change
+
     def _on_profile(self, msg: PointCloud2) -> None:
         start = time.perf_counter()
         self.received += 1
         self.window["received"] += 1
+        age = (self.get_clock().now().nanoseconds - Time.from_msg(msg.header.stamp).nanoseconds) * 1e-9
+        self.window["max_age"] = max(self.window["max_age"], age)
         try:
             reason = self._estimate_and_publish(msg)
         except Exception as exc:  # noqa: BLE001 - a malformed input must never take the node down
@@ -150,11 +165,15 @@ class PoseEstimatorNode(Node):
             level, message = ERROR, f"all {received} profiles rejected; last: {self.last_error}"
         elif rejected:
             level, message = WARN, f"{rejected} of {received} profiles rejected; last: {self.last_error}"
+        elif w["lost"]:
+            level, message = WARN, (f"{w['lost']} profiles lost before processing (this node too slow, or the "
+                                    f"link dropping)")
         else:
             level, message = OK, f"estimating at {received / elapsed:.1f} Hz"
         values = {
             "rate_hz": received / elapsed, "profiles_received": self.received, "poses_published": self.published,
-            "profiles_rejected": self.rejected, "last_error": self.last_error or "none",
+            "profiles_rejected": self.rejected, "profiles_lost": self.lost, "last_error": self.last_error or "none",
+            "max_profile_age_ms": w["max_age"] * 1e3,
             "last_reprojection_error_um": self.last_reprojection_error * 1e6,
             "mean_processing_ms": 1e3 * w["busy"] / received if received else 0.0,
             "gauge": self.gauge.name, "gauge_file": self.gauge_file,
@@ -162,7 +181,7 @@ class PoseEstimatorNode(Node):
         self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(),
                                                       f"{self.get_name()}: pose estimation", self.gauge.name,
                                                       level, message, values))
-        self.window = {"received": 0, "rejected": 0, "busy": 0.0, "start": now}
+        self.window = self._new_window(now)
 
 
 def main(args=None) -> int:

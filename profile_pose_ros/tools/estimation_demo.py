@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -22,6 +20,7 @@ import numpy as np
 from ..core import Gauge, estimate_pose, pose_error, render_profile, sample_pose
 from ..core.rotation import so3_log
 from ..resources import DEFAULT_GAUGE, config_path
+from . import processes
 from .report import run_dir, summary, table, write_json
 
 NM, NRAD = 1e-9, 1e-9
@@ -78,12 +77,9 @@ class NodeRun:
         from sensor_msgs.msg import PointCloud2
 
         self.domain_id = 100 + os.getpid() % 100
-        env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id))
-        exe = Path(sys.executable).parent / "pose_estimator"
-        command = [str(exe)] if exe.exists() else [sys.executable, "-m", "profile_pose_ros.nodes.pose_estimator"]
-        self.log = open(log_path, "w")
-        self.process = subprocess.Popen(command + ["--ros-args", "-p", f"gauge_file:={gauge_file}"], env=env,
-                                        stdout=self.log, stderr=subprocess.STDOUT)
+        command = processes.executable("pose_estimator", "profile_pose_ros.nodes.pose_estimator")
+        self.process = processes.start(command + ["--ros-args", "-p", f"gauge_file:={gauge_file}"], self.domain_id,
+                                       log_path)
         self.rclpy = rclpy
         self.context = Context()
         rclpy.init(context=self.context, domain_id=self.domain_id)
@@ -131,14 +127,7 @@ class NodeRun:
         self.executor.shutdown()
         self.node.destroy_node()
         self.rclpy.shutdown(context=self.context)
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
-            try:
-                self.process.wait(10)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-        self.log.close()
+        processes.stop(self.process)
 
 
 def run_node(gauge: Gauge, gauge_file: Path, poses, noise_std: float, rng: np.random.Generator, log_path: Path) -> dict:

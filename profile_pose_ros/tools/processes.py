@@ -1,0 +1,55 @@
+"""Running package executables as their own processes, and measuring them through /proc."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def executable(name: str, module: str) -> list[str]:
+    """The venv's console script if installed, else `python -m module`."""
+    exe = Path(sys.executable).parent / name
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", module]
+
+
+def start(command: list[str], domain_id: int, log_path: Path) -> subprocess.Popen:
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
+    log = open(log_path, "w")
+    process = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+    process.log_file = log  # closed by stop()
+    return process
+
+
+def stop(process: subprocess.Popen, timeout: float = 10.0) -> int:
+    """SIGINT (a node's clean shutdown path), then SIGKILL if it does not exit in time."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    log = getattr(process, "log_file", None)
+    if log is not None:
+        log.close()
+    return process.returncode
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+def memory_kib(pid: int) -> dict:
+    """Current (VmRSS) and peak (VmHWM) resident memory in KiB."""
+    values = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, rest = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            values[key] = int(rest.split()[0])
+    return values
