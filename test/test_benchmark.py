@@ -34,3 +34,16 @@ def test_scipy_reference_solves_the_same_problem(gauge, rng):
         rotation, translation, _ = estimate_reference(points, gauge)
         assert np.max(np.abs(translation - ours.t)) < 1e-7  # scipy's LM stops on its own tolerances
         assert np.max(np.abs(rotation - ours.R)) < 1e-7
+
+
+def test_quick_node_benchmark_runs_both_rates(tmp_path):
+    exe = Path(sys.executable).parent / "profile_pose_node_benchmark"
+    result = subprocess.run([str(exe), "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    (report,) = tmp_path.glob("*/node_benchmark.json")
+    runs = json.loads(report.read_text())["runs"]
+    assert [r["rate_hz"] for r in runs] == [83.3, 1000.0]
+    for r in runs:
+        assert r["sent"] > 0 and 0 < r["received"] <= r["sent"]
+        assert r["latency_ms"]["median"] > 0 and r["peak_rss_mib"] > 0 and r["cpu_share"] > 0
