@@ -11,20 +11,24 @@ from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
 from profile_pose_ros.tools.plain_reference import estimate_reference
 
 
-def test_quick_benchmark_runs_and_reports_every_row(tmp_path):
-    exe = Path(sys.executable).parent / "profile_pose_benchmark"
-    result = subprocess.run([str(exe), "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
-                            timeout=300)
+def run_quick(tool: str, report_name: str, out: Path) -> tuple[str, dict]:
+    """Run a console script in its --quick mode; its stdout and the JSON report it wrote."""
+    exe = Path(sys.executable).parent / tool
+    result = subprocess.run([str(exe), "--quick", "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
-    (report,) = tmp_path.glob("*/benchmark.json")
-    data = json.loads(report.read_text())
+    (report,) = out.glob(f"*/{report_name}")
+    return result.stdout, json.loads(report.read_text())
+
+
+def test_quick_benchmark_runs_and_reports_every_row(tmp_path):
+    stdout, data = run_quick("profile_pose_benchmark", "benchmark.json", tmp_path)
     for row in ("Proposed, this package: CD", "Proposed, this package: total (one call)", "Plain reference: total",
                 "Camera-based (OpenCV): CD", "Camera-based (OpenCV): PC"):
         assert data["stages_ms"][row]["n"] > 0, row
         assert data["stages_ms"][row]["median"] > 0
     assert set(data["ratios"]) == {"plain / ours (median total)", "camera / ours (median CD + PC)"}
     assert data["data_bytes"]["profile (3200 x float32)"] == 12800
-    assert "time per measurement (ms)" in result.stdout
+    assert "time per measurement (ms)" in stdout
 
 
 def test_scipy_reference_solves_the_same_problem(gauge, rng):
@@ -37,12 +41,9 @@ def test_scipy_reference_solves_the_same_problem(gauge, rng):
 
 
 def test_quick_node_benchmark_runs_both_rates(tmp_path):
-    exe = Path(sys.executable).parent / "profile_pose_node_benchmark"
-    result = subprocess.run([str(exe), "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
-                            timeout=300)
-    assert result.returncode == 0, result.stdout + result.stderr
-    (report,) = tmp_path.glob("*/node_benchmark.json")
-    runs = json.loads(report.read_text())["runs"]
+    stdout, data = run_quick("profile_pose_node_benchmark", "node_benchmark.json", tmp_path)
+    runs = data["runs"]
+    assert "pose_estimator under load" in stdout
     assert [r["rate_hz"] for r in runs] == [83.3, 1000.0]
     for r in runs:
         assert r["sent"] > 0 and 0 < r["received"] <= r["sent"]

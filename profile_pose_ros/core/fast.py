@@ -445,6 +445,19 @@ def _normal_equations(jac, weight, r, jw, hessian, gradient):
 
 
 @njit(**JIT)
+def _matmul(a, b, out, transpose_b):
+    """out = a @ b (or a @ b.T) for the small matrices here, without a BLAS call's overhead."""
+    rows, inner = a.shape
+    cols = b.shape[0] if transpose_b else b.shape[1]
+    for i in range(rows):
+        for j in range(cols):
+            acc = 0.0
+            for k in range(inner):
+                acc += a[i, k] * (b[j, k] if transpose_b else b[k, j])
+            out[i, j] = acc
+
+
+@njit(**JIT)
 def _matmul3(a, b, out):
     for i in range(3):
         for j in range(3):
@@ -667,39 +680,31 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, cov_
     bread = np.empty((6, 6))
     if not _spd_inverse(hessian, bread):
         return SINGULAR, rot, t, r, iterations
-    js = np.empty((6, n2))  # J^T W Sigma_r
-    for a in range(6):
-        for j in range(n2):
-            acc = 0.0
-            for i in range(n2):
-                acc += jw[a, i] * sigma_r[i, j]
-            js[a, j] = acc
-    meat = np.empty((6, 6))  # J^T W Sigma_r W J
-    for a in range(6):
-        for b in range(6):
-            acc = 0.0
-            for j in range(n2):
-                acc += js[a, j] * jw[b, j]
-            meat[a, b] = acc
+    js = np.empty((6, n2))
+    _matmul(jw, sigma_r, js, False)  # J^T W Sigma_r
+    meat = np.empty((6, 6))
+    _matmul(js, jw, meat, True)  # J^T W Sigma_r W J
     half = np.empty((6, 6))
-    for a in range(6):
-        for b in range(6):
-            acc = 0.0
-            for k in range(6):
-                acc += bread[a, k] * meat[k, b]
-            half[a, b] = acc
-    for a in range(6):
-        for b in range(6):
-            acc = 0.0
-            for k in range(6):
-                acc += half[a, k] * bread[k, b]
-            cov_out[a, b] = acc
+    _matmul(bread, meat, half, False)
+    _matmul(half, bread, cov_out, False)
     for a in range(6):
         for b in range(a + 1, 6):
             mean = 0.5 * (cov_out[a, b] + cov_out[b, a])
             cov_out[a, b] = mean
             cov_out[b, a] = mean
     return OK, rot, t, r, iterations
+
+
+@njit(**JIT)
+def _unstack_residuals(r, out):
+    """(2n,) -> (n, 2) residuals; returns their mean norm (the reprojection error)."""
+    n = out.shape[0]
+    total = 0.0
+    for i in range(n):
+        out[i, 0] = r[2 * i]
+        out[i, 1] = r[2 * i + 1]
+        total += math.hypot(r[2 * i], r[2 * i + 1])
+    return total / n
 
 
 @njit(**JIT)
@@ -722,12 +727,7 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
     cf_t[:] = t
     r = np.empty(2 * n)
     _residuals(q, u, w, corners, rot, t, r)
-    cf_err = 0.0
-    for i in range(n):
-        cf_res[i, 0] = r[2 * i]
-        cf_res[i, 1] = r[2 * i + 1]
-        cf_err += math.hypot(r[2 * i], r[2 * i + 1])
-    cf_err /= n
+    cf_err = _unstack_residuals(r, cf_res)
     corner_cov = np.empty((2 * n, 2 * n))
     for a in range(2 * n):
         for b in range(2 * n):
@@ -743,12 +743,7 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
         return status, iterations, fit_rms, np.nan, cf_err
     if opt[O_REFINE] > 0:
         rot, t, r = rot2, t2, r2
-    err = 0.0
-    for i in range(n):
-        res_out[i, 0] = r[2 * i]
-        res_out[i, 1] = r[2 * i + 1]
-        err += math.hypot(r[2 * i], r[2 * i + 1])
-    err /= n
+    err = _unstack_residuals(r, res_out)
     for v in rot.ravel():
         if not math.isfinite(v):
             return NOT_FINITE, iterations, fit_rms, err, cf_err

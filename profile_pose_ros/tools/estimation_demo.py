@@ -20,7 +20,7 @@ import numpy as np
 from ..core import Gauge, estimate_pose, pose_error, render_profile, sample_pose
 from ..core.rotation import so3_log
 from ..resources import DEFAULT_GAUGE, config_path
-from . import processes
+from .node_process import NodeProcess
 from .report import run_dir, summary, table, write_json
 
 NM, NRAD = 1e-9, 1e-9
@@ -65,35 +65,22 @@ def error_table(columns: dict, title: str) -> tuple[str, dict]:
     return table(["metric", "method", "mean", "std", "median", "max"], rows, title), data
 
 
-class NodeRun:
+class NodeRun(NodeProcess):
     """The pose_estimator node as its own process, and a client node in this one."""
 
     def __init__(self, gauge_file: Path, log_path: Path) -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from geometry_msgs.msg import PoseStamped
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
 
-        self.domain_id = 100 + os.getpid() % 100
-        command = processes.executable("pose_estimator", "profile_pose_ros.nodes.pose_estimator")
-        self.process = processes.start(command + ["--ros-args", "-p", f"gauge_file:={gauge_file}"], self.domain_id,
-                                       log_path)
-        self.rclpy = rclpy
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=self.domain_id)
-        self.node = rclpy.create_node("estimation_demo", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__("pose_estimator", "profile_pose_ros.nodes.pose_estimator", ["-p", f"gauge_file:={gauge_file}"],
+                         "estimation_demo", 100 + os.getpid() % 100, log_path)
         self.publisher = self.node.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
         self.poses = {}
         self.node.create_subscription(PoseStamped, "pose", self._on_pose, 100)
-        deadline = time.monotonic() + 30.0
-        while self.publisher.get_subscription_count() == 0 or self.node.count_publishers("pose") == 0:
-            if time.monotonic() > deadline or self.process.poll() is not None:
-                raise RuntimeError(f"pose_estimator did not come up; see {log_path}")
-            self.executor.spin_once(timeout_sec=0.05)
+        if not self.spin_until(lambda: self.publisher.get_subscription_count() > 0
+                               and self.node.count_publishers("pose") > 0, 30.0):
+            raise RuntimeError(f"pose_estimator did not come up; see {log_path}")
 
     def warm_up(self, points: np.ndarray, timeout: float = 30.0) -> None:
         """Publish until the first pose comes back: matching is not complete on both sides until then."""
@@ -115,19 +102,10 @@ class NodeRun:
         key = (stamp.sec, stamp.nanosec)
         sent = time.perf_counter()
         self.publisher.publish(msg)
-        deadline = sent + timeout
-        while key not in self.poses and time.perf_counter() < deadline:
-            self.executor.spin_once(timeout_sec=0.01)
-        if key not in self.poses:
+        if not self.spin_until(lambda: key in self.poses, timeout):
             return None, None
         pose, arrived = self.poses.pop(key)
         return pose, arrived - sent
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.rclpy.shutdown(context=self.context)
-        processes.stop(self.process)
 
 
 def run_node(gauge: Gauge, gauge_file: Path, poses, noise_std: float, rng: np.random.Generator, log_path: Path) -> dict:

@@ -19,37 +19,28 @@ import numpy as np
 from ..core import Gauge, render_profile, sample_pose
 from ..resources import DEFAULT_GAUGE, config_path
 from . import processes
+from .node_process import NodeProcess
 from .report import run_dir, summary, table, write_json
 
 
-class LoadRun:
+class LoadRun(NodeProcess):
     """One rate: a node process, a publisher thread at the rate, and a receiver."""
 
     def __init__(self, gauge: Gauge, rate_hz: float, seconds: float, out_dir, seed: int) -> None:
-        import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
 
         from ..nodes.messages import cloud_from_points
 
+        super().__init__("pose_estimator", "profile_pose_ros.nodes.pose_estimator", ["-p", f"gauge_file:={gauge.source}"],
+                         "node_benchmark", 1 + (os.getpid() + int(rate_hz)) % 200,
+                         out_dir / f"pose_estimator_{rate_hz:g}Hz.log")
         self.rate_hz, self.seconds = rate_hz, seconds
-        self.domain_id = 1 + (os.getpid() + int(rate_hz)) % 200
-        command = processes.executable("pose_estimator", "profile_pose_ros.nodes.pose_estimator")
-        self.process = processes.start(command + ["--ros-args", "-p", f"gauge_file:={gauge.source}"],
-                                       self.domain_id, out_dir / f"pose_estimator_{rate_hz:g}Hz.log")
         rng = np.random.default_rng(seed)
         self.messages = [cloud_from_points(render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng),
                                            PointCloud2().header.stamp, "profiler") for _ in range(200)]
-        self.rclpy = rclpy
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=self.domain_id)
-        self.node = rclpy.create_node("node_benchmark", context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
         self.publisher = self.node.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
         self.latencies: list[float] = []
         self.diagnostics: list = []
@@ -68,24 +59,16 @@ class LoadRun:
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(now, 1_000_000_000)
         self.publisher.publish(msg)
 
-    def _spin_until(self, condition, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while not condition() and time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError("pose_estimator exited; see its log")
-            self.executor.spin_once(timeout_sec=0.02)
-        return condition()
-
     def run(self) -> dict:
-        if not self._spin_until(lambda: self.publisher.get_subscription_count() > 0, 30.0):
+        if not self.spin_until(lambda: self.publisher.get_subscription_count() > 0, 30.0):
             raise RuntimeError("pose_estimator did not subscribe")
         deadline = time.monotonic() + 30.0
         while not self.latencies and time.monotonic() < deadline:  # warm up until one pose comes back
             self._publish(self.messages[0])
-            self._spin_until(lambda: bool(self.latencies), 0.2)
+            self.spin_until(lambda: bool(self.latencies), 0.2)
         if not self.latencies:
             raise RuntimeError("pose_estimator never answered")
-        self._spin_until(lambda: False, 0.5)
+        self.spin_until(lambda: False, 0.5)
         self.latencies.clear()
         self.diagnostics.clear()
         pid = self.process.pid
@@ -112,11 +95,11 @@ class LoadRun:
             if time.monotonic() >= next_sample:
                 self.samples.append({"t": time.monotonic() - wall_start, **processes.memory_kib(pid)})
                 next_sample += 1.0
-        self._spin_until(lambda: len(self.latencies) >= self.sent, 2.0)  # drain what is in flight
+        self.spin_until(lambda: len(self.latencies) >= self.sent, 2.0)  # drain what is in flight
         cpu = processes.cpu_seconds(pid) - cpu_start
         wall = time.monotonic() - wall_start
         self.samples.append({"t": wall, **processes.memory_kib(pid)})
-        self._spin_until(lambda: False, 1.2)  # one more diagnostics period
+        self.spin_until(lambda: False, 1.2)  # one more diagnostics period
         def reported(key: str) -> list[float]:
             return [float(kv.value) for a in self.diagnostics for s in a.status for kv in s.values if kv.key == key]
 
@@ -129,12 +112,6 @@ class LoadRun:
                 "rss_first_mib": rss[0], "rss_last_mib": rss[-1], "rss_growth_mib": rss[-1] - rss[0],
                 "rss_per_second_mib": rss, "node_reported_lost": lost,
                 "node_callback_ms": float(np.median(callback_ms)) if callback_ms else float("nan")}
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.node.destroy_node()
-        self.rclpy.shutdown(context=self.context)
-        processes.stop(self.process)
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,43 @@
+"""A package node in its own process on a private DDS domain, and a client node in this process."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from . import processes
+
+
+class NodeProcess:
+    """Starts `executable` (falling back to `python -m module`) and a client node to talk to it."""
+
+    def __init__(self, executable: str, module: str, ros_args: list[str], client_name: str, domain_id: int,
+                 log_path: Path) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.domain_id = domain_id
+        self.log_path = log_path
+        command = processes.executable(executable, module) + ["--ros-args", *ros_args]
+        self.process = processes.start(command, domain_id, log_path)
+        self.rclpy = rclpy
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node(client_name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, condition, timeout: float) -> bool:
+        """Spin the client until condition() or the deadline; a node process that died is an error."""
+        deadline = time.monotonic() + timeout
+        while not condition() and time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"the node process exited; see {self.log_path}")
+            self.executor.spin_once(timeout_sec=0.01)
+        return bool(condition())
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)
+        processes.stop(self.process)
