@@ -13,29 +13,13 @@ import numpy as np
 from numba import njit
 
 from .solver import POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS
+from .fast_codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, NOT_FINITE, O_EPS,
+                         O_FLOOR, O_MARGIN, O_MAXFACE, O_MAXIT, O_MAXOFF, O_MAXREPROJ, O_MINANGLE, O_MINSEG,
+                         O_NOISE, O_PASSES, O_REFINE, O_ROBUST, O_SIGFLOOR, O_THR, O_TRIM, O_WEIGHTED, OK,
+                         OUTSIDE_FOOTPRINT, REPROJECTION, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS,
+                         WRONG_CORNER_COUNT, X_NOT_INCREASING)
 
 JIT = dict(cache=True, error_model="numpy", nogil=True)
-
-# status codes (the Python wrapper turns them into reasons)
-OK = 0
-TOO_FEW_POINTS = 2
-X_NOT_INCREASING = 3
-STEEP_SEGMENT = 4
-WRONG_CORNER_COUNT = 5
-CORNER_NOT_BETWEEN = 6
-CORNERS_NOT_INCREASING = 7
-CF_RANK = 8
-CF_DEGENERATE = 9
-NOT_FINITE = 11
-REPROJECTION = 12
-OUTSIDE_FOOTPRINT = 13
-SINGULAR = 14
-
-# option vector layout
-O_EPS, O_TRIM, O_MINSEG, O_MINANGLE, O_MAXFACE, O_MAXOFF, O_ROBUST, O_THR, O_FLOOR, O_NOISE, O_SIGFLOOR, \
-    O_WEIGHTED, O_REFINE, O_MAXIT, O_MAXREPROJ, O_MARGIN, O_PASSES = range(17)
-N_OPTIONS = 17
-
 
 # ----------------------------------------------------------------------------- corner detection
 @njit(**JIT)

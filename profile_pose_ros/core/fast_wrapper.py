@@ -1,10 +1,17 @@
-"""Python side of the compiled estimator: options packing, status codes -> reasons, warm-up."""
+"""Python side of the compiled estimator: kernel choice, options packing, status codes -> reasons, warm-up.
+
+The kernel is the prebuilt extension (aot.py) when it can be built on this machine, else numba's JIT of
+the same source (fast.py). PROFILE_POSE_KERNEL=aot|jit|auto (default auto) forces a choice.
+"""
 from __future__ import annotations
 
+import os
 import time
+
 import numpy as np
 
-from . import fast
+from . import aot
+from . import fast_codes as fast
 from .corners import (REASON_CORNERS_NOT_INCREASING, ROBUST_PASSES, REASON_X_NOT_INCREASING, reason_corner_count,
                       reason_corner_not_between, reason_steep_segment, reason_too_few_points)
 from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, reason_outside, reason_reprojection)
@@ -68,18 +75,39 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
     return f"internal status {status}"
 
 
+_kernel = None
+kernel_name = ""
+
+
+def kernel():
+    """The compiled estimate() in use: loaded (and, the first time on a machine, built) on first need."""
+    global _kernel, kernel_name
+    if _kernel is None:
+        choice = os.environ.get("PROFILE_POSE_KERNEL", "auto")
+        module = aot.load() if choice in ("auto", "aot") else None
+        if module is not None:
+            _kernel, kernel_name = module.estimate, "prebuilt (aot)"
+        elif choice == "aot":
+            raise RuntimeError("PROFILE_POSE_KERNEL=aot but the prebuilt estimator could not be built here")
+        else:
+            from . import fast as jit
+
+            _kernel, kernel_name = jit.estimate, "numba jit"
+    return _kernel
+
+
 def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
     n = gauge.n_ridges
     corners = np.empty((n, 2))
-    rot, t, cov = np.empty((3, 3)), np.empty(3), np.empty((6, 6))  # NaN-filled by fast.estimate unless ok
+    rot, t, cov = np.empty((3, 3)), np.empty(3), np.empty((6, 6))  # NaN-filled by the kernel unless ok
     cf_rot, cf_t, cf_res, res = np.empty((3, 3)), np.empty(3), np.empty((n, 2)), np.empty((n, 2))
     info = np.zeros(4)
     start = time.perf_counter()
     try:
-        status, iterations, fit_rms, error, cf_error = fast.estimate(
+        status, iterations, fit_rms, error, cf_error = kernel()(
             points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, option_vector(options), corners, rot, t,
             cov, cf_rot, cf_t, cf_res, res, info)
     except np.linalg.LinAlgError as exc:

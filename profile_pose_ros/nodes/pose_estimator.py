@@ -21,6 +21,7 @@ from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 
 from ..core.estimator import WEIGHTINGS, EstimatorOptions, estimate_pose
+from ..core import fast_wrapper
 from ..core.fast_wrapper import warm_up
 from ..core.gauge import Gauge, GaugeError
 from ..core.profile_cloud import ProfileFormatError
@@ -92,7 +93,7 @@ class PoseEstimatorNode(Node):
         self.last_error = ""
         self.last_reprojection_error = float("nan")
         self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}; "
-                               f"estimator ready in {compile_s:.2f} s")
+                               f"estimator ({fast_wrapper.kernel_name}) ready in {compile_s:.2f} s")
 
     # ------------------------------------------------------------------ parameters
     def _on_set_parameters(self, parameters) -> SetParametersResult:

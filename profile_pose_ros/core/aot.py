@@ -1,0 +1,133 @@
+"""The compiled estimator as a prebuilt extension module, so the node process never loads numba's LLVM.
+
+numba's JIT costs a process ~130 MiB (LLVM) even when it only loads cached code. The same source
+(fast.py) is therefore compiled ahead of time with numba.pycc, once per machine, in a subprocess, into a
+cache directory named by a fingerprint of the sources and the toolchain; later starts just import it.
+If the build cannot be done here (no C compiler, a read-only cache), the caller falls back to the JIT.
+
+    python -m profile_pose_ros.core.aot build    # build now (e.g. in a container image)
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.machinery
+import importlib.util
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+from importlib.metadata import version
+from pathlib import Path
+
+MODULE = "profile_pose_estimator_aot"
+SOURCES = ("fast.py", "fast_codes.py", "solver.py")
+
+
+def cache_root() -> Path:
+    explicit = os.environ.get("PROFILE_POSE_AOT_DIR")
+    if explicit:
+        return Path(explicit)
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "profile_pose_ros" / "aot"
+
+
+def fingerprint() -> str:
+    """Changes whenever the compiled code or the toolchain that compiles it changes."""
+    digest = hashlib.sha256()
+    here = Path(__file__).resolve().parent
+    for name in SOURCES:
+        digest.update((here / name).read_bytes())
+    for item in (version("numba"), version("numpy"), sys.version, platform.machine()):
+        digest.update(item.encode())
+    return digest.hexdigest()[:16]
+
+
+def _module_file(directory: Path) -> Path | None:
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        candidate = directory / (MODULE + suffix)
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _import(path: Path):
+    spec = importlib.util.spec_from_file_location(MODULE, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def load(build: bool = True, timeout: float = 900.0):
+    """The prebuilt kernel module, building it first if needed; None if that is not possible here."""
+    target = cache_root() / fingerprint()
+    path = _module_file(target)
+    if path is None and build:
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            scratch = Path(tempfile.mkdtemp(prefix=target.name + ".", dir=target.parent))
+            done = subprocess.run([sys.executable, "-m", "profile_pose_ros.core.aot", "build", str(scratch)],
+                                  capture_output=True, text=True, timeout=timeout)
+            if done.returncode == 0 and _module_file(scratch) is not None:
+                try:
+                    scratch.rename(target)  # atomic; a concurrent builder may have won, which is fine
+                except OSError:
+                    pass
+            shutil.rmtree(scratch, ignore_errors=True)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        path = _module_file(target)
+    if path is None:
+        return None
+    try:
+        return _import(path)
+    except ImportError:
+        return None
+
+
+def build_into(directory: Path) -> None:
+    """Compile fast.estimate with numba.pycc (runs in its own process: it loads LLVM)."""
+    import warnings
+
+    from numba import types
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        from numba.pycc import CC
+
+    from . import fast
+
+    f8 = types.float64
+    array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
+    frozen2, frozen1 = types.Array(f8, 2, "C", readonly=True), types.Array(f8, 1, "C", readonly=True)
+    signature = types.Tuple((types.int64, types.int64, f8, f8, f8))(
+        array2, frozen2, frozen1, frozen1, f8, f8, frozen1, array2, array2, array1, array2, array2, array1, array2,
+        array2, array1)
+    compiler = CC(MODULE)
+    compiler.output_dir = str(directory)
+    compiler.target_cpu = "host"  # built on the machine that runs it
+
+    @compiler.export("estimate", signature)
+    def estimate(points, q, u, w, width, length, opt, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info):
+        return fast.estimate(points, q, u, w, width, length, opt, corners, rot, t, cov, cf_rot, cf_t, cf_res, res,
+                             info)
+
+    compiler.compile()
+
+
+def main(argv=None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if args[:1] != ["build"]:
+        print(__doc__)
+        return 2
+    if len(args) > 1:
+        build_into(Path(args[1]))
+        return 0
+    module = load()
+    print(f"{MODULE}: {'ready' if module else 'could not be built here'} in {cache_root() / fingerprint()}")
+    return 0 if module else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

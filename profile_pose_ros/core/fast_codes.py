@@ -1,0 +1,24 @@
+"""Status codes and the option-vector layout shared by the compiled estimator and its wrapper.
+
+Kept apart from fast.py so that code using a prebuilt kernel never imports numba.
+"""
+
+# status codes (the Python wrapper turns them into reasons)
+OK = 0
+TOO_FEW_POINTS = 2
+X_NOT_INCREASING = 3
+STEEP_SEGMENT = 4
+WRONG_CORNER_COUNT = 5
+CORNER_NOT_BETWEEN = 6
+CORNERS_NOT_INCREASING = 7
+CF_RANK = 8
+CF_DEGENERATE = 9
+NOT_FINITE = 11
+REPROJECTION = 12
+OUTSIDE_FOOTPRINT = 13
+SINGULAR = 14
+
+# option vector layout
+O_EPS, O_TRIM, O_MINSEG, O_MINANGLE, O_MAXFACE, O_MAXOFF, O_ROBUST, O_THR, O_FLOOR, O_NOISE, O_SIGFLOOR, \
+    O_WEIGHTED, O_REFINE, O_MAXIT, O_MAXREPROJ, O_MARGIN, O_PASSES = range(17)
+N_OPTIONS = 17

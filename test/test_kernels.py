@@ -1,0 +1,41 @@
+"""The prebuilt estimator (numba.pycc, no LLVM in the process) and numba's JIT are the same code: they must
+give the same numbers, and importing the core for the prebuilt kernel must not load numba."""
+import subprocess
+import sys
+
+import numpy as np
+
+from profile_pose_ros.core import EstimatorOptions, render_profile, sample_pose
+from profile_pose_ros.core import aot, fast
+from profile_pose_ros.core.fast_wrapper import option_vector
+
+
+def run(kernel, points, gauge, opt):
+    n = gauge.n_ridges
+    outs = [np.empty((n, 2)), np.empty((3, 3)), np.empty(3), np.empty((6, 6)), np.empty((3, 3)), np.empty(3),
+            np.empty((n, 2)), np.empty((n, 2)), np.zeros(4)]
+    status = kernel(points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, opt, *outs)
+    return status, outs
+
+
+def test_prebuilt_and_jit_kernels_agree(gauge, rng):
+    module = aot.load()
+    assert module is not None, "the prebuilt estimator could not be built on this machine"
+    opt = option_vector(EstimatorOptions())
+    for _ in range(30):
+        points = render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng)
+        (status_a, outs_a), (status_j, outs_j) = run(module.estimate, points, gauge, opt), run(fast.estimate, points,
+                                                                                              gauge, opt)
+        assert status_a[0] == status_j[0] == 0
+        for a, j in zip(outs_a, outs_j):
+            assert np.allclose(a, j, rtol=1e-12, atol=1e-15, equal_nan=True)
+    status, _ = run(module.estimate, np.full((100, 2), np.nan), gauge, opt)
+    assert status[0] != 0
+
+
+def test_node_side_import_does_not_load_numba(gauge):
+    code = ("import sys; from profile_pose_ros.core import Gauge; from profile_pose_ros.core.fast_wrapper import "
+            f"warm_up, kernel; warm_up(Gauge.from_yaml({str(gauge.source)!r})); "
+            "import profile_pose_ros.core.fast_wrapper as w; print(w.kernel_name, 'numba' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600).stdout.split()
+    assert out[-1] == "False" and "aot" in " ".join(out)
