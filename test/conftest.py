@@ -62,6 +62,9 @@ class RosHarness:
                 return True
             if action is not None:
                 action()
+            for node in self.nodes:  # nodes that take their input directly (nodes/fast_input.py)
+                if hasattr(node, "pump"):
+                    node.pump(0.0)
             self.executor.spin_once(timeout_sec=0.02)
         return bool(condition())
 

@@ -7,14 +7,16 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.event_handler import SubscriptionEventCallbacks
-from rclpy.executors import ExternalShutdownException
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.time import Time
@@ -27,6 +29,7 @@ from ..core.gauge import Gauge, GaugeError
 from ..core.profile_cloud import ProfileFormatError
 from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
+from .fast_input import FastInput, ServedDirectly, spin
 from .messages import points_from_cloud, pose_stamped, pose_with_covariance
 from .parameters import Param, declare_all
 
@@ -79,21 +82,35 @@ class PoseEstimatorNode(Node):
         compile_s = warm_up(self.gauge, self.options)  # compile (or load) before the first profile
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self.pose_pub = self.create_publisher(PoseStamped, "pose", 10)
-        self.covariance_pub = self.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
-        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        # Sensor-data QoS keeps the newest profiles: a consumer that falls behind drops the oldest, and the
-        # middleware reports them here so diagnostics can say so.
-        self.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data,
-                                 event_callbacks=SubscriptionEventCallbacks(message_lost=self._on_lost))
+        # rclpy attaches default QoS-event handlers to every endpoint, and its executor walks all of them on
+        # each wake-up; at 1 kHz that is a large share of the node's time. Only message loss on the input
+        # is worth a handler here.
+        quiet = PublisherEventCallbacks(use_default_callbacks=False)
+        self.pose_pub = self.create_publisher(PoseStamped, "pose", 10, event_callbacks=quiet)
+        self.covariance_pub = self.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10,
+                                                    event_callbacks=quiet)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10, event_callbacks=quiet)
         self.diagnostics_timer = self.create_timer(self.values["diagnostics_period"], self._publish_diagnostics)
-
         self.received = self.published = self.rejected = self.lost = 0
+        self.stats_lock = threading.Lock()  # callbacks may run on other executors' threads
         self.window = self._new_window(time.monotonic())
+        # Sensor-data QoS keeps the newest profiles: a consumer that falls behind drops the oldest, and the
+        # middleware reports them through the message-lost handler so diagnostics can say so.
+        self.profile_sub = self.create_subscription(
+            PointCloud2, "profile", self._on_profile, qos_profile_sensor_data, callback_group=ServedDirectly(),
+            event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
+        for handler in SubscriptionEventCallbacks(message_lost=self._on_lost).create_event_handlers(
+                MutuallyExclusiveCallbackGroup(), self.profile_sub.handle, self.profile_sub.topic_name):
+            self.add_waitable(handler)
+        self.fast_input = FastInput(self.profile_sub, self.context, self._on_profile)
         self.last_error = ""
         self.last_reprojection_error = float("nan")
         self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}; "
                                f"estimator ({fast_wrapper.kernel_name}) ready in {compile_s:.2f} s")
+
+    def pump(self, timeout_sec: float = 0.0) -> int:
+        """Handle queued profiles (see fast_input.py); spin() or a test harness calls this."""
+        return self.fast_input.pump(timeout_sec)
 
     # ------------------------------------------------------------------ parameters
     def _on_set_parameters(self, parameters) -> SetParametersResult:
@@ -114,26 +131,32 @@ class PoseEstimatorNode(Node):
         return {"received": 0, "rejected": 0, "lost": 0, "busy": 0.0, "max_age": 0.0, "start": start}
 
     def _on_lost(self, info) -> None:
-        self.lost += info.total_count_change
-        self.window["lost"] += info.total_count_change
+        with self.stats_lock:
+            self.lost += info.total_count_change
+            self.window["lost"] += info.total_count_change
 
     def _on_profile(self, msg: PointCloud2) -> None:
+        """One profile, taken by FastInput."""
         start = time.perf_counter()
-        self.received += 1
-        self.window["received"] += 1
         age = (self.get_clock().now().nanoseconds - Time.from_msg(msg.header.stamp).nanoseconds) * 1e-9
-        self.window["max_age"] = max(self.window["max_age"], age)
         try:
             reason = self._estimate_and_publish(msg)
         except Exception as exc:  # noqa: BLE001 - a malformed input must never take the node down
             reason = f"internal error: {exc!r}"
             self.get_logger().error(reason)
         if reason:
-            self.rejected += 1
-            self.window["rejected"] += 1
             self.last_error = reason
             self.get_logger().warn(f"profile rejected: {reason}", throttle_duration_sec=1.0)
-        self.window["busy"] += time.perf_counter() - start
+        with self.stats_lock:
+            self.received += 1
+            self.window["received"] += 1
+            self.window["max_age"] = max(self.window["max_age"], age)
+            if reason:
+                self.rejected += 1
+                self.window["rejected"] += 1
+            self.window["busy"] += time.perf_counter() - start
+
+
 
     def _estimate_and_publish(self, msg: PointCloud2) -> str:
         expected = self.values["profiler_frame"]
@@ -157,7 +180,8 @@ class PoseEstimatorNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
-        w = self.window
+        with self.stats_lock:
+            w, self.window = self.window, self._new_window(now)
         elapsed = max(now - w["start"], 1e-9)
         received, rejected = w["received"], w["rejected"]
         if received == 0:
@@ -182,7 +206,6 @@ class PoseEstimatorNode(Node):
         self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(),
                                                       f"{self.get_name()}: pose estimation", self.gauge.name,
                                                       level, message, values))
-        self.window = self._new_window(now)
 
 
 def main(args=None) -> int:
@@ -193,11 +216,14 @@ def main(args=None) -> int:
         print(f"[{NODE_NAME}] refusing to start: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
     try:
-        rclpy.spin(node)
+        spin(executor, node.fast_input)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -44,7 +44,7 @@ class LoadRun(NodeProcess):
         self.publisher = self.node.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
         self.latencies: list[float] = []
         self.diagnostics: list = []
-        self.node.create_subscription(PoseStamped, "pose", self._on_pose, 1000)
+        self.subscribe_fast(PoseStamped, "pose", self._on_pose, 1000)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 100)
         self.sent = 0
         self.samples: list[dict] = []
@@ -91,9 +91,10 @@ class LoadRun(NodeProcess):
         publisher.start()
         next_sample = wall_start
         while publisher.is_alive():
-            self.executor.spin_once(timeout_sec=0.01)
+            self.fast_inputs[0].pump(0.005)  # poses, timestamped as they are taken
             if time.monotonic() >= next_sample:
                 self.samples.append({"t": time.monotonic() - wall_start, **processes.memory_kib(pid)})
+                self.executor.spin_once(timeout_sec=0.0)  # diagnostics
                 next_sample += 1.0
         self.spin_until(lambda: len(self.latencies) >= self.sent, 2.0)  # drain what is in flight
         cpu = processes.cpu_seconds(pid) - cpu_start

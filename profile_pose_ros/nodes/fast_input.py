@@ -1,0 +1,66 @@
+"""A high-rate subscription served directly, not through the executor's generic wait.
+
+rclpy's executor rebuilds a wait set over every timer, service, guard condition and event handler of the
+node on each wake-up; at 1 kHz that costs about as much as estimating the pose. A FastInput waits on the
+one subscription and drains it, so a profile costs one wait and one take; `spin` runs the executor for
+everything else (timers, parameter services, QoS events) at a housekeeping period. The subscription is in
+a callback group the executor never schedules, so the two never compete for a message. Single-threaded:
+two threads waiting in rcl at once would contend for the GIL.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+from rclpy.callback_groups import CallbackGroup
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.subscription import Subscription
+
+
+class ServedDirectly(CallbackGroup):
+    """A callback group whose entities the executor leaves alone: a FastInput serves them."""
+
+    def can_execute(self, entity) -> bool:
+        return False
+
+    def beginning_execution(self, entity) -> bool:
+        return False
+
+    def ending_execution(self, entity) -> None:
+        pass
+
+
+class FastInput:
+    def __init__(self, subscription: Subscription, context, callback: Callable) -> None:
+        self.subscription = subscription
+        self.callback = callback
+        self.wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, context.handle)
+
+    def pump(self, timeout_sec: float) -> int:
+        """Wait up to timeout_sec for messages, then handle every one queued; returns how many."""
+        handle = self.subscription.handle
+        with handle:
+            self.wait_set.clear_entities()
+            self.wait_set.add_subscription(handle)
+            self.wait_set.wait(int(max(timeout_sec, 0.0) * 1e9))
+            if not self.wait_set.is_ready("subscription", 0):
+                return 0
+        handled = 0
+        while True:
+            with handle:
+                taken = handle.take_message(self.subscription.msg_type, self.subscription.raw)
+            if taken is None:
+                return handled
+            self.callback(taken[0])
+            handled += 1
+
+
+def spin(executor, fast_input: FastInput, housekeeping_period: float = 0.01) -> None:
+    """Serve fast_input continuously and the executor's other work every housekeeping_period."""
+    context = executor.context
+    due = time.monotonic()
+    while context.ok():
+        fast_input.pump(max(0.0, due - time.monotonic()))
+        if time.monotonic() >= due:
+            executor.spin_once(timeout_sec=0.0)
+            due = time.monotonic() + housekeeping_period
