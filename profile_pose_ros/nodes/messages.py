@@ -42,13 +42,12 @@ def pose_stamped(rotation: np.ndarray, translation: np.ndarray, stamp: Time, fra
     return msg
 
 
-def pose_with_covariance(rotation: np.ndarray, translation: np.ndarray, covariance: np.ndarray, stamp: Time,
-                         frame_id: str) -> PoseWithCovarianceStamped:
+def pose_with_covariance(pose: PoseStamped, covariance: np.ndarray) -> PoseWithCovarianceStamped:
+    """The same pose (header and Pose shared, not recomputed) with its 6x6 covariance in ROS order."""
     msg = PoseWithCovarianceStamped()
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    fill_pose(msg.pose.pose, rotation, translation)
-    msg.pose.covariance = [float(v) for v in np.asarray(covariance, dtype=float).ravel()]
+    msg.header = pose.header
+    msg.pose.pose = pose.pose
+    msg.pose.covariance = np.ascontiguousarray(covariance, dtype=np.float64).reshape(36)
     return msg
 
 

@@ -171,9 +171,9 @@ class PoseEstimatorNode(Node):
         if not estimate.ok:
             return estimate.reason
         frame = self.values["gauge_frame"]
-        self.pose_pub.publish(pose_stamped(estimate.R, estimate.t, msg.header.stamp, frame))
-        self.covariance_pub.publish(pose_with_covariance(estimate.R, estimate.t, estimate.covariance,
-                                                         msg.header.stamp, frame))
+        pose = pose_stamped(estimate.R, estimate.t, msg.header.stamp, frame)
+        self.pose_pub.publish(pose)
+        self.covariance_pub.publish(pose_with_covariance(pose, estimate.covariance))
         self.published += 1
         return ""
 
