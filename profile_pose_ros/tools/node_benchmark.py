@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import threading
+import subprocess
 import time
 
 import numpy as np
@@ -23,6 +23,58 @@ from .node_process import NodeProcess
 from .report import run_dir, summary, table, write_json
 
 
+def rendered_profiles(gauge: Gauge, seed: int, count: int) -> list:
+    from sensor_msgs.msg import PointCloud2
+
+    from ..nodes.messages import cloud_from_points
+
+    rng = np.random.default_rng(seed)
+    return [cloud_from_points(render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng),
+                              PointCloud2().header.stamp, "profiler") for _ in range(count)]
+
+
+def publish_stamped(publisher, msg) -> None:
+    """Stamp with the time of publishing (the latency's start) and publish."""
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(time.time_ns(), 1_000_000_000)
+    publisher.publish(msg)
+
+
+def publisher_main(domain_id: int, rate_hz: float, seconds: float, seed: int, gauge_file: str) -> int:
+    """The load process: renders profiles, says "ready", publishes at the rate after "go", prints the count."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import PointCloud2
+
+    messages = rendered_profiles(Gauge.from_yaml(gauge_file), seed, 200)
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    node = rclpy.create_node("node_benchmark_load", context=context)
+    publisher = node.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
+    deadline = time.monotonic() + 30.0
+    while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)  # discovery only; nothing is measured yet
+    for k in range(20):  # until the subscriber has matched this writer too (best effort drops before)
+        publish_stamped(publisher, messages[k])
+        time.sleep(0.02)
+    print("ready", flush=True)
+    sys.stdin.readline()
+    period = 1.0 / rate_hz
+    start = time.monotonic()
+    sent = 0
+    while sent * period < seconds:
+        delay = start + sent * period - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        publish_stamped(publisher, messages[sent % len(messages)])
+        sent += 1
+    time.sleep(0.5)  # let the last best-effort samples leave before the writer is destroyed
+    node.destroy_node()
+    rclpy.shutdown(context=context)
+    print(f"sent {sent}", flush=True)
+    return 0
+
+
 class LoadRun(NodeProcess):
     """One rate: a node process, a publisher thread at the rate, and a receiver."""
 
@@ -32,15 +84,11 @@ class LoadRun(NodeProcess):
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
 
-        from ..nodes.messages import cloud_from_points
-
         super().__init__("pose_estimator", "profile_pose_ros.nodes.pose_estimator", ["-p", f"gauge_file:={gauge.source}"],
                          "node_benchmark", 1 + (os.getpid() + int(rate_hz)) % 200,
                          out_dir / f"pose_estimator_{rate_hz:g}Hz.log")
-        self.rate_hz, self.seconds = rate_hz, seconds
-        rng = np.random.default_rng(seed)
-        self.messages = [cloud_from_points(render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng),
-                                           PointCloud2().header.stamp, "profiler") for _ in range(200)]
+        self.rate_hz, self.seconds, self.seed, self.gauge_file = rate_hz, seconds, seed, gauge.source
+        self.messages = rendered_profiles(gauge, seed, 5)  # for the warm-up
         self.publisher = self.node.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
         self.latencies: list[float] = []
         self.diagnostics: list = []
@@ -55,9 +103,7 @@ class LoadRun(NodeProcess):
         self.latencies.append((arrival - stamp) * 1e-9)
 
     def _publish(self, msg) -> None:
-        now = time.time_ns()
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(now, 1_000_000_000)
-        self.publisher.publish(msg)
+        publish_stamped(self.publisher, msg)
 
     def run(self) -> dict:
         if not self.spin_until(lambda: self.publisher.get_subscription_count() > 0, 30.0):
@@ -73,29 +119,27 @@ class LoadRun(NodeProcess):
         self.diagnostics.clear()
         pid = self.process.pid
 
-        def publish_at_rate() -> None:
-            period = 1.0 / self.rate_hz
-            start = time.monotonic()
-            k = 0
-            while k * period < self.seconds:
-                target = start + k * period
-                delay = target - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                self._publish(self.messages[k % len(self.messages)])
-                self.sent += 1
-                k += 1
-
+        # The load comes from its own process, as a profiler driver's would: a publisher thread in this
+        # process would hold the GIL while serialising profiles and delay the poses being timed here.
+        load = subprocess.Popen([sys.executable, "-m", __spec__.name, "--publisher", str(self.domain_id),
+                                 str(self.rate_hz), str(self.seconds), str(self.seed), self.gauge_file],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                env=dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id)))
+        if load.stdout.readline().strip() != "ready":
+            raise RuntimeError("the load publisher did not start")
+        self.spin_until(lambda: False, 0.5)  # discard the load process's warm-up poses
+        self.latencies.clear()
         cpu_start, wall_start = processes.cpu_seconds(pid), time.monotonic()
-        publisher = threading.Thread(target=publish_at_rate, daemon=True)
-        publisher.start()
+        load.stdin.write("go\n")
+        load.stdin.flush()
         next_sample = wall_start
-        while publisher.is_alive():
+        while load.poll() is None:
             self.fast_inputs[0].pump(0.005)  # poses, timestamped as they are taken
             if time.monotonic() >= next_sample:
                 self.samples.append({"t": time.monotonic() - wall_start, **processes.memory_kib(pid)})
                 self.executor.spin_once(timeout_sec=0.0)  # diagnostics
                 next_sample += 1.0
+        self.sent = int(load.stdout.read().split()[-1])
         self.spin_until(lambda: len(self.latencies) >= self.sent, 2.0)  # drain what is in flight
         cpu = processes.cpu_seconds(pid) - cpu_start
         wall = time.monotonic() - wall_start
@@ -122,7 +166,12 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="3 s per rate (for tests)")
     parser.add_argument("--gauge", default=str(config_path(DEFAULT_GAUGE)))
     parser.add_argument("--out", default="runs")
+    parser.add_argument("--publisher", nargs=5, metavar=("DOMAIN", "RATE", "SECONDS", "SEED", "GAUGE"),
+                        help=argparse.SUPPRESS)  # internal: the load process
     args = parser.parse_args(argv)
+    if args.publisher:
+        domain, rate, secs, seed, gauge_file = args.publisher
+        return publisher_main(int(domain), float(rate), float(secs), int(seed), gauge_file)
     seconds = 3.0 if args.quick else args.seconds
     gauge = Gauge.from_yaml(args.gauge)
     out = run_dir(args.out, "node-benchmark")
