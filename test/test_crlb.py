@@ -1,0 +1,44 @@
+"""Cramér-Rao bounds: the depth derivatives against their closed form, the dense model never worse than
+the corner model, and the refined estimator close to the corner-model bound (it is ML for that model)."""
+import numpy as np
+
+from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
+from profile_pose_ros.core.crlb import corner_crlb, dense_crlb, depth_jacobian, position_rotation_rms
+from profile_pose_ros.core.poses import LOOKING_DOWN
+from profile_pose_ros.core.render import DEFAULT_PROFILER
+from profile_pose_ros.core.rotation import so3_log
+
+
+def test_depth_derivatives_match_the_plane_equation(gauge):
+    # Straight down, F's z = -G's z: z = (d - n.(t + x r1)) / (n.r3) so dz/dt = n / n_z on each face.
+    t = np.array([0.0, 0.003, 0.45])
+    jac, lit = depth_jacobian(gauge, LOOKING_DOWN, t)
+    px = DEFAULT_PROFILER.x[lit]
+    faces = gauge.face_index(px, np.full(len(px), 0.003))
+    normals = gauge.normals[faces]
+    assert np.allclose(jac[:, 5], 1.0, atol=1e-6)  # raising the profiler deepens every point equally
+    assert np.allclose(jac[:, 3], normals[:, 0] / normals[:, 2], atol=1e-6)
+    assert np.allclose(jac[:, 4], normals[:, 1] / normals[:, 2], atol=1e-6)
+    assert len(px) > 1500  # the whole top surface is lit and differentiable except at its ridges
+
+
+def test_dense_bound_is_never_weaker_than_the_corner_bound(gauge, rng):
+    for _ in range(5):
+        rotation, t = sample_pose(gauge, rng)
+        difference = corner_crlb(gauge, rotation, t, 5e-6) - dense_crlb(gauge, rotation, t, 5e-6)
+        assert np.min(np.linalg.eigvalsh(0.5 * (difference + difference.T))) > -1e-18
+
+
+def test_refined_estimate_reaches_the_corner_bound(gauge):
+    rng = np.random.default_rng(11)
+    rotation, t = sample_pose(gauge, rng)
+    bound_position, bound_rotation = position_rotation_rms(corner_crlb(gauge, rotation, t, 5e-6))
+    errors = []
+    for _ in range(200):
+        estimate = estimate_pose(render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), gauge)
+        errors.append(np.concatenate([t - estimate.t, so3_log(rotation @ estimate.R.T)]))
+    errors = np.array(errors)
+    rms_position = np.sqrt(np.mean(np.sum(errors[:, :3] ** 2, axis=1)))
+    rms_rotation = np.sqrt(np.mean(np.sum(errors[:, 3:] ** 2, axis=1)))
+    assert 0.85 < rms_position / bound_position < 1.15
+    assert 0.85 < rms_rotation / bound_rotation < 1.15
