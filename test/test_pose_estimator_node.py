@@ -201,3 +201,15 @@ def test_params_file_loads_through_rcl(ros):
     assert node.get_parameter("rdp_epsilon").value == 0.0003
     assert node.get_parameter("max_face_angle").value == 1.2217
     assert node.gauge.name == "paper_n5"
+
+
+def test_dense_refinement_through_the_node(ros, gauge, rng):
+    probe = Probe(ros, refine_model="dense")
+    rotation, t = sample_pose(gauge, rng)
+    stamp = probe.stamp()
+    msg = cloud_from_points(render_profile(gauge, rotation, t), stamp, "profiler")
+    assert probe.send_until(msg, lambda: probe.pose_for(stamp) is not None)
+    est_r, est_t = rotation_translation(probe.pose_for(stamp).pose)
+    position, angle = pose_error(est_r, est_t, rotation, t)
+    assert position < 2e-6 and angle < 10e-6
+    assert not probe.estimator.set_parameters([Parameter("refine_model", value="magic")])[0].successful

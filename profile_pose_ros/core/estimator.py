@@ -14,9 +14,10 @@ import numpy as np
 from .corners import CornerOptions, detect_corners
 from .gauge import Gauge
 from .rotation import rotation_angle
-from .solver import PoseSolution, SolverError, closed_form, refine
+from .solver import PoseSolution, SolverError, closed_form, corner_residuals, refine
 
 WEIGHTINGS = ("corner_covariance", "uniform")
+REFINE_MODELS = ("corners", "dense")
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,7 @@ class EstimatorOptions:
     corners: CornerOptions = CornerOptions()
     refine: bool = True
     weighting: str = "corner_covariance"  # or "uniform": the paper's plain eq. (15)
+    refine_model: str = "corners"  # or "dense": then also fit every point's depth (core/dense.py)
     noise_std: float = 0.0  # m; 0 = estimate the depth noise from each face fit
     max_reprojection_error: float = 1e-4  # m; reject poses whose corners miss their ridges by more
     footprint_margin: float = 2e-3  # m; mapped corners must lie this close to the gauge's footprint
@@ -32,6 +34,8 @@ class EstimatorOptions:
     def __post_init__(self) -> None:
         if self.weighting not in WEIGHTINGS:
             raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
+        if self.refine_model not in REFINE_MODELS:
+            raise ValueError(f"refine_model must be one of {REFINE_MODELS}, got {self.refine_model!r}")
 
     def with_changes(self, **changes) -> "EstimatorOptions":
         corner_keys = {k: changes.pop(k) for k in list(changes) if hasattr(CornerOptions, k)}
@@ -106,10 +110,35 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
     if backend == "fast":
         from .fast_wrapper import estimate_fast
 
-        return estimate_fast(points, gauge, options)
-    if backend != "numpy":
+        estimate = estimate_fast(points, gauge, options)
+    elif backend == "numpy":
+        estimate = estimate_plain(points, gauge, options)
+    else:
         raise ValueError(f"backend must be 'fast' or 'numpy', got {backend!r}")
-    return estimate_plain(points, gauge, options)
+    if estimate.ok and options.refine and options.refine_model == "dense":
+        return _refine_dense(points, gauge, options, estimate)
+    return estimate
+
+
+def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate) -> PoseEstimate:
+    """Replace the corner solution by the dense one (same checks), keeping the corner results alongside."""
+    from .dense import refine_dense
+
+    start = time.perf_counter()
+    try:
+        dense = refine_dense(gauge, points, estimate.R, estimate.t, options.noise_std)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        return replace(estimate, ok=False, reason=f"dense refinement: {exc}", R=np.full((3, 3), np.nan),
+                       t=np.full(3, np.nan), covariance=np.full((6, 6), np.nan))
+    solution = PoseSolution(dense.rotation, dense.translation,
+                            corner_residuals(gauge, estimate.corners, dense.rotation, dense.translation))
+    timings = dict(estimate.timings, dense_refinement=time.perf_counter() - start)
+    reason = _check(gauge, solution, estimate.corners, options)
+    if reason:
+        return replace(estimate, ok=False, reason=f"dense refinement: {reason}", R=np.full((3, 3), np.nan),
+                       t=np.full(3, np.nan), covariance=np.full((6, 6), np.nan), timings=timings)
+    return replace(estimate, R=dense.rotation, t=dense.translation, reprojection_error=solution.reprojection_error,
+                   covariance=_ros_covariance(dense.rotation, dense.covariance_local), timings=timings)
 
 
 def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:

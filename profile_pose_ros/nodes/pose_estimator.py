@@ -43,6 +43,9 @@ PARAMETERS = [
     Param("refine", True, "Refine the closed form by maximum likelihood (paper eq. 15)."),
     Param("refine_weighting", "corner_covariance",
           f"Refinement weights: one of {', '.join(WEIGHTINGS)} (uniform = the paper's plain sum of squares)."),
+    Param("refine_model", "corners",
+          "Refine on the corners (paper eq. 15), or 'dense': also fit every point's depth to its face "
+          "(ML for depth noise, ~1.4x lower position error on the shipped gauge, ~3 ms per profile)."),
     Param("noise_std", 0.0, "Profiler depth noise (m) for the covariance; 0 estimates it from each face fit.",
           0.0, 1e-3),
     Param("rdp_epsilon", 3e-4, "RDP tolerance for corner candidates (m).", 1e-6, 5e-3),
@@ -58,7 +61,7 @@ PARAMETERS = [
 ]
 
 _OPTION_OF_PARAMETER = {
-    "refine": "refine", "refine_weighting": "weighting", "noise_std": "noise_std", "rdp_epsilon": "rdp_epsilon",
+    "refine": "refine", "refine_weighting": "weighting", "refine_model": "refine_model", "noise_std": "noise_std", "rdp_epsilon": "rdp_epsilon",
     "trim_fraction": "trim_fraction", "min_segment_points": "min_segment_points",
     "min_corner_angle": "min_corner_angle", "max_face_angle": "max_face_angle",
     "max_corner_offset": "max_corner_offset", "robust_line_fit": "robust",
