@@ -6,6 +6,8 @@ from its chosen x-slope a_{i+1}. config/gauge_paper_n5.yaml was made this way.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .gauge import Gauge
@@ -36,3 +38,65 @@ def heightfield_gauge(name: str, width: float, length: float, ridge_x: np.ndarra
         faces.append({"normal": (normal / norm).tolist(), "offset": float(c[k] / norm)})
     document = {"gauge": {"name": name, "width": width, "length": length, "base_z": base_z, "faces": faces}}
     return Gauge.from_dict(document, source=name)
+
+
+@dataclass(frozen=True)
+class RandomGaugeRules:
+    """The paper's random-gauge protocol (III-B) with fabrication limits (III-D)."""
+
+    width: float = 0.120
+    length: float = 0.100
+    max_face_angle_deg: float = 40.0  # steepest face from horizontal (occlusion limit: beta >= 50 deg)
+    min_face_angle_deg: float = 15.0  # flatter faces give weak corners
+    max_ridge_angle_deg: float = 20.0  # ridge direction from the gauge's y axis
+    min_face_width: float = 0.004  # m, everywhere along the gauge
+    max_relief: float = 0.045  # m
+
+
+def face_widths(gauge: Gauge) -> np.ndarray:
+    """Width of every face at both ends of the gauge (faces are planar, so the extremes are there)."""
+    ys = np.array([-gauge.length / 2, gauge.length / 2])
+    ridges = gauge.ridge_x(ys)
+    edges = np.column_stack([np.full(2, -gauge.width / 2), ridges, np.full(2, gauge.width / 2)])
+    return np.diff(edges, axis=1)
+
+
+def random_gauge(n_ridges: int, rng: np.random.Generator, rules: RandomGaugeRules = RandomGaugeRules(),
+                 check_poses: int = 5, max_tries: int = 500) -> Gauge:
+    """A valid random gauge with n ridges whose corners are all visible over the pose range."""
+    from .gauge import GaugeError
+    from .poses import sample_pose
+
+    free = rules.width - (n_ridges + 1) * rules.min_face_width
+    if free <= 0:
+        raise ValueError(f"{n_ridges} ridges with faces >= {rules.min_face_width} m do not fit in {rules.width} m")
+
+    def ends() -> np.ndarray:
+        """Ridge x at one end of the gauge: sorted, every face at least min_face_width wide."""
+        steps = rules.min_face_width * np.arange(1, n_ridges + 1)
+        return -rules.width / 2 + steps + np.sort(rng.uniform(0.0, free, n_ridges))
+
+    for attempt in range(max_tries):
+        near, far = ends(), ends()  # at y = -length/2 and y = +length/2: faces never cross
+        ridge_x = 0.5 * (near + far)
+        angles = np.arctan((far - near) / rules.length)
+        if np.max(np.abs(np.degrees(angles))) > rules.max_ridge_angle_deg:
+            continue
+        magnitudes = np.tan(np.radians(rng.uniform(rules.min_face_angle_deg, rules.max_face_angle_deg, n_ridges + 1)))
+        signs = rng.choice([-1.0, 1.0]) * (-1.0) ** np.arange(n_ridges + 1)  # alternate: every ridge a corner
+        try:
+            gauge = heightfield_gauge(f"random_n{n_ridges}_{attempt}", rules.width, rules.length, ridge_x, angles,
+                                      signs * magnitudes, y_slope0=rng.uniform(-0.1, 0.1))
+        except GaugeError:
+            continue
+        heights = gauge.corner_heights()
+        if (np.min(face_widths(gauge)) < rules.min_face_width or np.max(gauge.face_slope_deg()) > rules.max_face_angle_deg
+                or np.ptp(heights) > rules.max_relief):
+            continue
+        try:
+            for _ in range(check_poses):
+                sample_pose(gauge, rng, max_tries=50)
+        except RuntimeError:
+            continue
+        return gauge
+    raise RuntimeError(f"no valid random gauge with {n_ridges} ridges after {max_tries} tries; relax the rules")
