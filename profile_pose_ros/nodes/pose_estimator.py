@@ -61,7 +61,8 @@ PARAMETERS = [
 ]
 
 _OPTION_OF_PARAMETER = {
-    "refine": "refine", "refine_weighting": "weighting", "refine_model": "refine_model", "noise_std": "noise_std", "rdp_epsilon": "rdp_epsilon",
+    "refine": "refine", "refine_weighting": "weighting", "refine_model": "refine_model",
+    "noise_std": "noise_std", "rdp_epsilon": "rdp_epsilon",
     "trim_fraction": "trim_fraction", "min_segment_points": "min_segment_points",
     "min_corner_angle": "min_corner_angle", "max_face_angle": "max_face_angle",
     "max_corner_offset": "max_corner_offset", "robust_line_fit": "robust",
