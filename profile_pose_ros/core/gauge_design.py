@@ -90,7 +90,8 @@ def random_gauge(n_ridges: int, rng: np.random.Generator, rules: RandomGaugeRule
         except GaugeError:
             continue
         heights = gauge.corner_heights()
-        if (np.min(face_widths(gauge)) < rules.min_face_width or np.max(gauge.face_slope_deg()) > rules.max_face_angle_deg
+        if (np.min(face_widths(gauge)) < rules.min_face_width
+                or np.max(gauge.face_slope_deg()) > rules.max_face_angle_deg
                 or np.ptp(heights) > rules.max_relief):
             continue
         try:

@@ -33,7 +33,8 @@ def _errors(estimate, rotation, translation) -> dict:
     d = np.concatenate([translation - estimate.t, so3_log(rotation @ estimate.R.T)])
     return {"cf_reproj": cf.reprojection_error, "cf_pos": cf_pos, "cf_rot": cf_rot,
             "ref_reproj": estimate.reprojection_error, "ref_pos": pos, "ref_rot": rot,
-            "nees": float(d @ np.linalg.solve(estimate.covariance, d)), **{f"t_{k}": v for k, v in estimate.timings.items()}}
+            "nees": float(d @ np.linalg.solve(estimate.covariance, d)),
+            **{f"t_{k}": v for k, v in estimate.timings.items()}}
 
 
 def run_core(gauge: Gauge, poses, noise_std: float, rng: np.random.Generator) -> tuple[dict, list[str]]:
@@ -161,7 +162,8 @@ def main(argv=None) -> int:
     results["noise_free"] = {"worst": worst, "failures": clean_failures}
 
     noisy, noisy_failures = run_core(gauge, poses, args.noise, rng)
-    text, stats = error_table(noisy, f"\n{args.noise * 1e6:g} um depth noise, float64 API ({len(noisy['ref_pos'])} poses"
+    text, stats = error_table(noisy, f"\n{args.noise * 1e6:g} um depth noise, float64 API "
+                                     f"({len(noisy['ref_pos'])} poses"
                                      f", {len(noisy_failures)} rejected)")
     print(text)
     better = all(stats[f"ref_{k}"][s] < stats[f"cf_{k}"][s] for k in ("reproj", "pos", "rot")

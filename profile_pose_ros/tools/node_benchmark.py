@@ -84,7 +84,8 @@ class LoadRun(NodeProcess):
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
 
-        super().__init__("pose_estimator", "profile_pose_ros.nodes.pose_estimator", ["-p", f"gauge_file:={gauge.source}"],
+        super().__init__("pose_estimator", "profile_pose_ros.nodes.pose_estimator",
+                         ["-p", f"gauge_file:={gauge.source}"],
                          "node_benchmark", 1 + (os.getpid() + int(rate_hz)) % 200,
                          out_dir / f"pose_estimator_{rate_hz:g}Hz.log")
         self.rate_hz, self.seconds, self.seed, self.gauge_file = rate_hz, seconds, seed, gauge.source
@@ -152,7 +153,8 @@ class LoadRun(NodeProcess):
         callback_ms = reported("mean_processing_ms")
         rss = [s["VmRSS"] / 1024 for s in self.samples]
         return {"rate_hz": self.rate_hz, "seconds": self.seconds, "sent": self.sent, "received": len(self.latencies),
-                "delivered": len(self.latencies) / max(1, self.sent), "latency_ms": summary(np.array(self.latencies) * 1e3),
+                "delivered": len(self.latencies) / max(1, self.sent),
+                "latency_ms": summary(np.array(self.latencies) * 1e3),
                 "cpu_share": cpu / wall, "peak_rss_mib": max(s["VmHWM"] for s in self.samples) / 1024,
                 "rss_first_mib": rss[0], "rss_last_mib": rss[-1], "rss_growth_mib": rss[-1] - rss[0],
                 "rss_per_second_mib": rss, "node_reported_lost": lost,
