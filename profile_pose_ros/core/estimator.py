@@ -14,7 +14,8 @@ import numpy as np
 from .corners import CornerOptions, detect_corners
 from .gauge import Gauge
 from .rotation import rotation_angle
-from .solver import PoseSolution, SolverError, closed_form, corner_residuals, refine
+from .solver import (PoseSolution, SolverError, closed_form, corner_residuals, four_ridge_candidates, refine,
+                     residual_covariance)
 
 WEIGHTINGS = ("corner_covariance", "uniform")
 REFINE_MODELS = ("corners", "dense")
@@ -141,6 +142,13 @@ def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, e
                    covariance=_ros_covariance(dense.rotation, dense.covariance_local), timings=timings)
 
 
+def _weighted_cost(gauge: Gauge, solution: PoseSolution, corner_cov: np.ndarray, weighted: bool) -> float:
+    r = solution.residuals.ravel()
+    if not weighted:
+        return float(r @ r)
+    return float(r @ np.linalg.solve(residual_covariance(gauge, solution.rotation, corner_cov), r))
+
+
 def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
     """The numpy reference implementation, stage by stage, with per-stage timings."""
     timings = {}
@@ -152,19 +160,31 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) 
     corners = found.corners
     start = time.perf_counter()
     try:
-        initial = closed_form(gauge, corners)
+        starts = four_ridge_candidates(gauge, corners) if gauge.n_ridges == 4 else [closed_form(gauge, corners)]
     except (SolverError, np.linalg.LinAlgError) as exc:
         return PoseEstimate(False, f"closed form: {exc}", corners=corners, timings=timings)
     timings["closed_form"] = time.perf_counter() - start
 
     corner_cov = found.covariance(options.noise_std or None)
-    solution, refined, iterations = initial, False, 0
+    weighted = options.weighting == "corner_covariance"
     start = time.perf_counter()
-    try:
-        result = refine(gauge, corners, initial, corner_cov, options.weighting == "corner_covariance",
-                        options.max_iterations if options.refine else 0)
-    except np.linalg.LinAlgError as exc:
-        return PoseEstimate(False, f"refinement: {exc}", corners=corners, closed_form=initial, timings=timings)
+    best = None
+    for candidate in starts:
+        try:
+            attempt = refine(gauge, corners, candidate, corner_cov, weighted,
+                             options.max_iterations if options.refine or len(starts) > 1 else 0)
+        except np.linalg.LinAlgError as exc:
+            if len(starts) == 1:
+                return PoseEstimate(False, f"refinement: {exc}", corners=corners, closed_form=candidate,
+                                    timings=timings)
+            continue
+        cost = _weighted_cost(gauge, attempt.solution, corner_cov, weighted)
+        if best is None or cost < best[0]:
+            best = (cost, candidate, attempt)
+    if best is None:
+        return PoseEstimate(False, "refinement: no starting pose converged", corners=corners, timings=timings)
+    _, initial, result = best
+    solution, refined, iterations = initial, False, 0
     if options.refine:
         solution, refined, iterations = result.solution, True, result.iterations
         timings["refinement"] = time.perf_counter() - start

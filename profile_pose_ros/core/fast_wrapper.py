@@ -97,6 +97,10 @@ def kernel():
 
 
 def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
+    if gauge.n_ridges == 4:  # several starting poses (solver.four_ridge_candidates): the numpy path
+        from .estimator import estimate_plain
+
+        return estimate_plain(points, gauge, options)
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")

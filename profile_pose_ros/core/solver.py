@@ -49,6 +49,15 @@ def corner_residuals(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray, tr
 
 def closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
     """Paper eqs. (9)-(14): solve the stacked 2n x 9 system by SVD, then project onto SE(3)."""
+    a, b = _system(gauge, corners)
+    x, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
+    if rank < 9:
+        raise SolverError(reason_cf_rank(len(corners), rank))
+    return _pose_from_m(gauge, corners, x)
+
+
+def _system(gauge: Gauge, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stacked 2n x 9 system A x = b of eqs. (9)-(10)."""
     n = len(corners)
     p = np.column_stack([corners[:, 0], corners[:, 1], np.ones(n)])  # [px, pz, 1]
     a = np.zeros((2 * n, 9))
@@ -59,18 +68,50 @@ def closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
     b = np.empty(2 * n)
     b[0::2] = gauge.q[:, 0]
     b[1::2] = gauge.q[:, 2]
-    x, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
-    if rank < 9:
-        raise SolverError(reason_cf_rank(n, rank))
-    m = x.reshape(3, 3)  # rows m_1..m_3 of M = [r1 r3 t]
+    return a, b
+
+
+def _pose_from_m(gauge: Gauge, corners: np.ndarray, x: np.ndarray) -> PoseSolution:
+    """Eqs. (12)-(14): rows of M = [r1 r3 t] -> nearest rotation, rescaled translation."""
+    m = x.reshape(3, 3)
     r1, r3, t_hat = m[:, 0], m[:, 1], m[:, 2]
     r_hat = np.column_stack([r1, np.cross(r3, r1), r3])
-    rotation = nearest_rotation(r_hat)
     norm_hat = np.linalg.norm(r_hat)
     if not np.isfinite(norm_hat) or norm_hat == 0:
         raise SolverError(REASON_CF_DEGENERATE)
+    rotation = nearest_rotation(r_hat)
     translation = np.linalg.norm(rotation) / norm_hat * t_hat
     return PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation))
+
+
+def four_ridge_candidates(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
+    """Starting poses for n = 4, where A x = b leaves one free direction: x = x0 + alpha v.
+
+    alpha is fixed by the rotation constraints |r1| = |r3| = 1, r1 . r3 = 0: their squared violation is
+    a quartic in alpha, and every real root of its derivative (a cubic) is a candidate. The caller
+    refines each candidate and keeps the best, so a wrong root cannot win on a clean fit.
+    """
+    a, b = _system(gauge, corners)
+    x0 = np.linalg.lstsq(a, b, rcond=None)[0]
+    v = np.linalg.svd(a)[2][-1]  # the null direction of the rank-8 system
+    i1, i3 = [0, 3, 6], [1, 4, 7]  # r1 and r3 inside x (rows of M)
+
+    def quadratic(ia, ib):  # coefficients of (x0 + alpha v)_a . (x0 + alpha v)_b in alpha
+        return np.array([v[ia] @ v[ib], x0[ia] @ v[ib] + v[ia] @ x0[ib], x0[ia] @ x0[ib]])
+
+    violations = [quadratic(i1, i1) - [0, 0, 1], quadratic(i3, i3) - [0, 0, 1], quadratic(i1, i3)]
+    quartic = sum(np.polymul(c, c) for c in violations)
+    roots = np.roots(np.polyder(quartic))
+    alphas = roots[np.abs(roots.imag) < 1e-9 * (1 + np.abs(roots.real))].real
+    candidates = []
+    for alpha in alphas:
+        try:
+            candidates.append(_pose_from_m(gauge, corners, x0 + alpha * v))
+        except SolverError:
+            continue
+    if not candidates:
+        raise SolverError("no real starting pose for the 4-ridge gauge")
+    return candidates
 
 
 def residual_jacobian(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray) -> np.ndarray:
