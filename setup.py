@@ -11,6 +11,7 @@ EXECUTABLES = {
     "profile_pose_demo": "profile_pose_ros.tools.estimation_demo:main",
     "profile_pose_benchmark": "profile_pose_ros.tools.benchmark:main",
     "profile_pose_node_benchmark": "profile_pose_ros.tools.node_benchmark:main",
+    "profile_pose_study": "profile_pose_ros.tools.study:main",
 }
 
 setup(

@@ -48,3 +48,14 @@ def test_quick_node_benchmark_runs_both_rates(tmp_path):
     for r in runs:
         assert r["sent"] > 0 and 0 < r["received"] <= r["sent"]
         assert r["latency_ms"]["median"] > 0 and r["peak_rss_mib"] > 0 and r["cpu_share"] > 0
+
+
+def test_quick_study_runs_end_to_end(tmp_path):
+    stdout, data = run_quick("profile_pose_study", "study.json", tmp_path)
+    assert "TABLE I" in stdout and "Fig. 3" in stdout
+    assert set(data["figure_three"]) == {"0 um", "5 um", "25 um", "45 um"}
+    assert data["figure_three"]["0 um"]["ref_reproj"]["mean"] < 1e-3  # noise-free: exact
+    for n in (4, 5):
+        row = data["table_one"][f"n={n}"]
+        assert row["failure_rate"] < 0.5 and row["corner_crlb_pos_rms_um"] > 0 and row["dense_crlb_pos_rms_um"] > 0
+    assert list(tmp_path.glob("*/fig3_noise.png"))

@@ -84,6 +84,13 @@ def _pose_from_m(gauge: Gauge, corners: np.ndarray, x: np.ndarray) -> PoseSoluti
     return PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation))
 
 
+def paper_closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
+    """Eqs. (9)-(14) exactly as printed, also when the system is rank-deficient (n = 4): the SVD then
+    returns the minimum-norm solution, which is what the paper's Table I reports as failing for n = 4."""
+    a, b = _system(gauge, corners)
+    return _pose_from_m(gauge, corners, np.linalg.lstsq(a, b, rcond=None)[0])
+
+
 def four_ridge_candidates(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
     """Starting poses for n = 4, where A x = b leaves one free direction: x = x0 + alpha v.
 
