@@ -42,3 +42,14 @@ def test_refined_estimate_reaches_the_corner_bound(gauge):
     rms_rotation = np.sqrt(np.mean(np.sum(errors[:, 3:] ** 2, axis=1)))
     assert 0.85 < rms_position / bound_position < 1.15
     assert 0.85 < rms_rotation / bound_rotation < 1.15
+
+
+def test_analytic_dense_bound_matches_finite_differences(gauge):
+    """Straight down nothing but top faces is lit, so both ways of building the bound must agree."""
+    t = np.array([0.002, -0.004, 0.45])
+    numeric, _ = depth_jacobian(gauge, LOOKING_DOWN, t)
+    from profile_pose_ros.core.estimator import _ros_covariance
+
+    by_differences = _ros_covariance(LOOKING_DOWN, (5e-6) ** 2 * np.linalg.inv(numeric.T @ numeric))
+    analytic = dense_crlb(gauge, LOOKING_DOWN, t, 5e-6)
+    assert np.allclose(np.sqrt(np.diag(analytic)), np.sqrt(np.diag(by_differences)), rtol=0.02)

@@ -59,8 +59,17 @@ def depth_jacobian(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray,
 
 def dense_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, noise_std: float,
                profiler: ProfilerModel = DEFAULT_PROFILER) -> np.ndarray:
-    """6x6 bound for an estimator using every lit point's depth (i.i.d. Gaussian noise on z)."""
-    g, _ = depth_jacobian(gauge, rotation, translation, profiler)
+    """6x6 bound for an estimator using every lit top-face point's depth (i.i.d. Gaussian noise on z).
+
+    Uses the analytic depth Jacobian of dense.py (one render); depth_jacobian() is the finite-difference
+    check of it, which also counts side-wall points.
+    """
+    from .dense import DenseOptions, _model, _select
+
+    points = render_profile(gauge, rotation, translation, profiler=profiler)
+    points = points[np.isfinite(points).all(axis=1)]
+    index, face = _select(gauge, points, rotation, translation, DenseOptions(ridge_margin=1e-6))
+    _, g = _model(gauge, points[index, 0], face, rotation, translation)
     return _ros_covariance(rotation, noise_std ** 2 * np.linalg.inv(g.T @ g))
 
 
