@@ -48,8 +48,8 @@ def test_analytic_dense_bound_matches_finite_differences(gauge):
     """Straight down nothing but top faces is lit, so both ways of building the bound must agree."""
     t = np.array([0.002, -0.004, 0.45])
     numeric, _ = depth_jacobian(gauge, LOOKING_DOWN, t)
-    from profile_pose_ros.core.estimator import _ros_covariance
+    from profile_pose_ros.core.estimator import ros_covariance
 
-    by_differences = _ros_covariance(LOOKING_DOWN, (5e-6) ** 2 * np.linalg.inv(numeric.T @ numeric))
+    by_differences = ros_covariance(LOOKING_DOWN, (5e-6) ** 2 * np.linalg.inv(numeric.T @ numeric))
     analytic = dense_crlb(gauge, LOOKING_DOWN, t, 5e-6)
     assert np.allclose(np.sqrt(np.diag(analytic)), np.sqrt(np.diag(by_differences)), rtol=0.02)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from .corners import CornerOptions, detect_corners
-from .estimator import _ros_covariance
+from .estimator import ros_covariance
 from .gauge import Gauge
 from .render import DEFAULT_PROFILER, ProfilerModel, render_profile, shadow_mask, trace_depth
 from .rotation import so3_exp
@@ -29,7 +29,7 @@ def corner_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, noi
     corner_cov = found.covariance(noise_std)
     jac = residual_jacobian(gauge, found.corners, rotation)
     information = jac.T @ np.linalg.solve(residual_covariance(gauge, rotation, corner_cov), jac)
-    return _ros_covariance(rotation, np.linalg.inv(information))
+    return ros_covariance(rotation, np.linalg.inv(information))
 
 
 def depth_jacobian(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray,
@@ -64,13 +64,13 @@ def dense_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, nois
     Uses the analytic depth Jacobian of dense.py (one render); depth_jacobian() is the finite-difference
     check of it, which also counts side-wall points.
     """
-    from .dense import DenseOptions, _model, _select
+    from .dense import DenseOptions, depth_model, select_points
 
     points = render_profile(gauge, rotation, translation, profiler=profiler)
     points = points[np.isfinite(points).all(axis=1)]
-    index, face = _select(gauge, points, rotation, translation, DenseOptions(ridge_margin=1e-6))
-    _, g = _model(gauge, points[index, 0], face, rotation, translation)
-    return _ros_covariance(rotation, noise_std ** 2 * np.linalg.inv(g.T @ g))
+    index, face = select_points(gauge, points, rotation, translation, DenseOptions(ridge_margin=1e-6))
+    _, g = depth_model(gauge, points[index, 0], face, rotation, translation)
+    return ros_covariance(rotation, noise_std ** 2 * np.linalg.inv(g.T @ g))
 
 
 def position_rotation_rms(covariance: np.ndarray) -> tuple[float, float]:

@@ -38,7 +38,7 @@ class DenseResult:
     sigma: float
 
 
-def _select(gauge: Gauge, points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+def select_points(gauge: Gauge, points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
             options: DenseOptions) -> tuple[np.ndarray, np.ndarray]:
     """Indices of usable points and their faces, from where they land in G."""
     mapped = translation + points[:, :1] * rotation[:, 0] + points[:, 1:] * rotation[:, 2]
@@ -51,7 +51,7 @@ def _select(gauge: Gauge, points: np.ndarray, rotation: np.ndarray, translation:
     return np.nonzero(usable)[0], face[usable]
 
 
-def _model(gauge: Gauge, x: np.ndarray, face: np.ndarray, rotation: np.ndarray, translation: np.ndarray):
+def depth_model(gauge: Gauge, x: np.ndarray, face: np.ndarray, rotation: np.ndarray, translation: np.ndarray):
     """Predicted depths and their Jacobian w.r.t. [delta_F (right perturbation), t]."""
     n = gauge.normals[face]
     d = gauge.offsets[face]
@@ -71,28 +71,26 @@ def _model(gauge: Gauge, x: np.ndarray, face: np.ndarray, rotation: np.ndarray, 
 def refine_dense(gauge: Gauge, points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
                  noise_std: float = 0.0, options: DenseOptions = DenseOptions()) -> DenseResult:
     """Gauss-Newton on the depth residuals from (rotation, translation); noise_std 0 = estimate it."""
-    valid = np.isfinite(points).all(axis=1)
-    pts = points[valid]
-    keep = None
+    pts = points[np.isfinite(points).all(axis=1)]
     for _ in range(options.iterations):
-        index, face = _select(gauge, pts, rotation, translation, options)
-        x, z = pts[index, 0], pts[index, 1]
-        predicted, jac = _model(gauge, x, face, rotation, translation)
-        residual = z - predicted
-        scale = 1.4826 * np.median(np.abs(residual)) if len(residual) else 0.0
-        keep = np.abs(residual) <= max(options.outlier_threshold * scale, options.min_outlier_floor)
-        j, r = jac[keep], residual[keep]
-        step = np.linalg.lstsq(j, r, rcond=None)[0]  # residual = z - model: model grows by J step
+        jac, residual = _inlier_residuals(gauge, pts, rotation, translation, options)
+        step = np.linalg.lstsq(jac, residual, rcond=None)[0]  # residual = z - model: model grows by J step
         rotation = rotation @ so3_exp(step[:3])
         translation = translation + step[3:]
         if np.max(np.abs(step)) < 1e-13:
             break
-    index, face = _select(gauge, pts, rotation, translation, options)
-    predicted, jac = _model(gauge, pts[index, 0], face, rotation, translation)
-    residual = pts[index, 1] - predicted
-    scale = 1.4826 * np.median(np.abs(residual))
+    jac, residual = _inlier_residuals(gauge, pts, rotation, translation, options)
+    sigma = noise_std or float(np.sqrt(residual @ residual / max(1, len(residual) - 6)))
+    covariance = sigma ** 2 * np.linalg.inv(jac.T @ jac)
+    return DenseResult(rotation, translation, covariance, len(residual), sigma)
+
+
+def _inlier_residuals(gauge: Gauge, points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                      options: DenseOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobian and depth residuals of the usable points, outliers (robust threshold) left out."""
+    index, face = select_points(gauge, points, rotation, translation, options)
+    predicted, jac = depth_model(gauge, points[index, 0], face, rotation, translation)
+    residual = points[index, 1] - predicted
+    scale = 1.4826 * np.median(np.abs(residual)) if len(residual) else 0.0
     keep = np.abs(residual) <= max(options.outlier_threshold * scale, options.min_outlier_floor)
-    j, r = jac[keep], residual[keep]
-    sigma = noise_std or float(np.sqrt(r @ r / max(1, len(r) - 6)))
-    covariance = sigma ** 2 * np.linalg.inv(j.T @ j)
-    return DenseResult(rotation, translation, covariance, int(keep.sum()), sigma)
+    return jac[keep], residual[keep]

@@ -61,7 +61,7 @@ class PoseEstimate:
     timings: dict = field(default_factory=dict)  # seconds per stage
 
 
-def _ros_covariance(rotation: np.ndarray, local: np.ndarray) -> np.ndarray:
+def ros_covariance(rotation: np.ndarray, local: np.ndarray) -> np.ndarray:
     """[delta_F, t] (right perturbation) -> ROS order [t, delta_G] with delta_G = R delta_F."""
     transform = np.zeros((6, 6))
     transform[:3, 3:] = np.eye(3)
@@ -121,6 +121,12 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
     return estimate
 
 
+def _rejected(estimate: PoseEstimate, reason: str, **changes) -> PoseEstimate:
+    """The estimate turned into a rejection: no pose, the corner results kept for diagnosis."""
+    return replace(estimate, ok=False, reason=reason, R=np.full((3, 3), np.nan), t=np.full(3, np.nan),
+                   covariance=np.full((6, 6), np.nan), **changes)
+
+
 def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate) -> PoseEstimate:
     """Replace the corner solution by the dense one (same checks), keeping the corner results alongside."""
     from .dense import refine_dense
@@ -129,17 +135,15 @@ def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, e
     try:
         dense = refine_dense(gauge, points, estimate.R, estimate.t, options.noise_std)
     except (np.linalg.LinAlgError, ValueError) as exc:
-        return replace(estimate, ok=False, reason=f"dense refinement: {exc}", R=np.full((3, 3), np.nan),
-                       t=np.full(3, np.nan), covariance=np.full((6, 6), np.nan))
+        return _rejected(estimate, f"dense refinement: {exc}")
     solution = PoseSolution(dense.rotation, dense.translation,
                             corner_residuals(gauge, estimate.corners, dense.rotation, dense.translation))
     timings = dict(estimate.timings, dense_refinement=time.perf_counter() - start)
     reason = _check(gauge, solution, estimate.corners, options)
     if reason:
-        return replace(estimate, ok=False, reason=f"dense refinement: {reason}", R=np.full((3, 3), np.nan),
-                       t=np.full(3, np.nan), covariance=np.full((6, 6), np.nan), timings=timings)
+        return _rejected(estimate, f"dense refinement: {reason}", timings=timings)
     return replace(estimate, R=dense.rotation, t=dense.translation, reprojection_error=solution.reprojection_error,
-                   covariance=_ros_covariance(dense.rotation, dense.covariance_local), timings=timings)
+                   covariance=ros_covariance(dense.rotation, dense.covariance_local), timings=timings)
 
 
 def _weighted_cost(gauge: Gauge, solution: PoseSolution, corner_cov: np.ndarray, weighted: bool) -> float:
@@ -195,7 +199,7 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) 
     )
     if not reason:
         estimate.R, estimate.t = solution.rotation, solution.translation
-        estimate.covariance = _ros_covariance(solution.rotation, result.covariance)
+        estimate.covariance = ros_covariance(solution.rotation, result.covariance)
     return estimate
 
 
