@@ -8,10 +8,13 @@ PACKAGE = "profile_pose_ros"
 # Executable name -> module; the node name is the executable name (DESIGN.md).
 EXECUTABLES = {
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator:main",
+    "profiler_driver": "profile_pose_ros.nodes.profiler_driver:main",
+    "sim_cell": "profile_pose_ros.sim.sim_cell:main",
     "profile_pose_demo": "profile_pose_ros.tools.estimation_demo:main",
     "profile_pose_benchmark": "profile_pose_ros.tools.benchmark:main",
     "profile_pose_node_benchmark": "profile_pose_ros.tools.node_benchmark:main",
     "profile_pose_study": "profile_pose_ros.tools.study:main",
+    "profile_pose_profiler_check": "profile_pose_ros.tools.profiler_check:main",
 }
 
 setup(
@@ -23,7 +26,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
     ],
-    install_requires=["setuptools", "numpy", "scipy", "PyYAML", "numba"],
+    install_requires=["setuptools", "numpy", "scipy", "PyYAML", "numba", "pyserial"],
     extras_require={"benchmark": ["opencv-python-headless"]},
     zip_safe=False,
     maintainer="profile_pose_ros maintainers",

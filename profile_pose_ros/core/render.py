@@ -62,20 +62,21 @@ def trace_depth(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, x: 
 
     half_w, half_l = gauge.width / 2, gauge.length / 2
     n_faces = len(gauge.offsets)
+    ridge_q, ridge_u = gauge.q[:, 0], gauge.u
     for k in range(n_faces):
         normal = gauge.normals[k]
         denom = normal @ direction
         if denom >= 0:  # the ray can only leave through this face, never enter
             continue
         s = (gauge.offsets[k] - origins @ normal) / denom
-        hit = origins + s[:, None] * direction
-        ridge_x = gauge.ridge_x(hit[:, 1])
-        ok = (s > 0) & (np.abs(hit[:, 0]) <= half_w) & (np.abs(hit[:, 1]) <= half_l)
-        if k > 0:
-            ok &= hit[:, 0] >= ridge_x[:, k - 1]
-        if k < n_faces - 1:
-            ok &= hit[:, 0] <= ridge_x[:, k]
-        best = np.where(ok & (s < best), s, best)
+        hx = origins[:, 0] + s * direction[0]
+        hy = origins[:, 1] + s * direction[1]
+        ok = (s > 0) & (s < best) & (np.abs(hx) <= half_w) & (np.abs(hy) <= half_l)
+        if k > 0:  # right of ridge k-1 ...
+            ok &= hx >= ridge_q[k - 1] + ridge_u[k - 1] * hy
+        if k < n_faces - 1:  # ... and left of ridge k
+            ok &= hx <= ridge_q[k] + ridge_u[k] * hy
+        best = np.where(ok, s, best)
 
     # Side walls x = +-W/2 and y = +-L/2, from the base up to the top surface.
     for axis, bound in ((0, half_w), (1, half_l)):

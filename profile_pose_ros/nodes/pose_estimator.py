@@ -10,13 +10,11 @@ import sys
 import threading
 import time
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.time import Time
@@ -32,6 +30,7 @@ from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .messages import points_from_cloud, pose_stamped, pose_with_covariance
 from .parameters import Param, declare_all
+from .run import run_node
 
 NODE_NAME = "pose_estimator"
 
@@ -213,24 +212,8 @@ class PoseEstimatorNode(Node):
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = PoseEstimatorNode()
-    except GaugeError as exc:
-        print(f"[{NODE_NAME}] refusing to start: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 1
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        spin(executor, node.fast_input)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(PoseEstimatorNode, NODE_NAME, args, startup_errors=(GaugeError,),
+                    spin=lambda executor, node: spin(executor, node.fast_input))
 
 
 if __name__ == "__main__":

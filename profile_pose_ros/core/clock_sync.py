@@ -1,0 +1,164 @@
+"""Mapping a device clock to host time, and matching profiles to the triggers that took them.
+
+Each trigger line reaches the host some time after the trigger: the serial transmission (known from
+the baud rate) plus a latency that is never negative and only sometimes small (USB polling, the OS
+scheduler). So the host time of a device tick follows the *lower envelope* of (arrival - transmission)
+against device time, with a slope for the MCU oscillator's drift (a ceramic resonator: up to 0.5 %).
+A mean-based fit would add the average scheduling delay to every stamp; the envelope adds only the
+smallest one, which the link then estimates from PING round trips and subtracts.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict, deque
+
+import numpy as np
+
+
+CHUNK_S = 0.5
+
+
+class ClockMap:
+    """host = offset + slope * device. The slope comes from the least-delayed sample of each half second
+    over a long window (least squares through all samples while there are too few); the offset from the
+    lower envelope of the last few seconds (a short span keeps a small slope error from growing)."""
+
+    def __init__(self, window_s: float = 10.0, recent_s: float = 3.0, jump_s: float = 0.05,
+                 refit_s: float = 0.25, slope_after_s: float = 0.5, converged_after_s: float = 2.0,
+                 max_drift: float = 0.01) -> None:
+        self.window_s, self.recent_s = window_s, recent_s
+        self.jump_s = jump_s  # a sample this far below the fit means the device clock jumped
+        self.refit_s = refit_s  # full refits this often (device time); in between, only the offset moves
+        self.slope_after_s = slope_after_s  # before this span of samples, assume no drift
+        self.converged_after_s = converged_after_s
+        self.max_drift = max_drift  # a ceramic resonator is within 0.5 %
+        self._samples: deque[tuple[float, float]] = deque()
+        self._ref: tuple[float, float] | None = None
+        self._fit: tuple[float, float] | None = None  # (intercept, slope) relative to _ref
+        self._fitted_at = -np.inf
+        self.resets = 0
+
+    def reset(self) -> None:
+        self._samples.clear()
+        self._ref = self._fit = None
+        self._fitted_at = -np.inf
+        self.resets += 1
+
+    @property
+    def ready(self) -> bool:
+        return self._fit is not None
+
+    @property
+    def span(self) -> float:
+        """Device seconds covered by the samples in the window."""
+        return self._samples[-1][0] - self._samples[0][0] if self._samples else 0.0
+
+    @property
+    def converged(self) -> bool:
+        return self.span >= self.converged_after_s
+
+    def add(self, device_s: float, host_s: float) -> None:
+        if self._ref is None:
+            self._ref = (device_s, host_s)
+        if self._fit is not None and host_s < self.to_host(device_s) - self.jump_s:
+            self.reset()  # the device restarted or its clock was set: start over
+            self._ref = (device_s, host_s)
+        d, h = device_s - self._ref[0], host_s - self._ref[1]
+        self._samples.append((d, h))
+        while self._samples and d - self._samples[0][0] > self.window_s:
+            self._samples.popleft()
+        if self._fit is None or d - self._fitted_at >= self.refit_s:
+            self._refit()
+            self._fitted_at = d
+        else:
+            intercept, slope = self._fit
+            self._fit = (min(intercept, h - slope * d), slope)
+
+    def _refit(self) -> None:
+        data = np.asarray(self._samples)
+        d, h = data[:, 0], data[:, 1]
+        span = d[-1] - d[0]
+        slope = 1.0
+        if span >= self.converged_after_s:  # through each half second's least-delayed sample
+            chunk = np.floor((d - d[0]) / CHUNK_S).astype(int)
+            residual = h - d
+            order = np.lexsort((residual, chunk))
+            first = order[np.r_[True, np.diff(chunk[order]) > 0]]
+            slope = float(np.polyfit(d[first], h[first], 1)[0])
+        elif span >= self.slope_after_s:  # too few chunks yet: least squares through all
+            slope = float(np.polyfit(d, h, 1)[0])
+        slope = float(np.clip(slope, 1.0 - self.max_drift, 1.0 + self.max_drift))
+        recent = d >= d[-1] - self.recent_s
+        self._fit = (float(np.min(h[recent] - slope * d[recent])), slope)
+
+    def to_host(self, device_s: float) -> float:
+        """Host time of a device time; raises RuntimeError before the first sample."""
+        if self._fit is None or self._ref is None:
+            raise RuntimeError("clock map has no samples yet")
+        intercept, slope = self._fit
+        return self._ref[1] + intercept + slope * (device_s - self._ref[0])
+
+    def residual_stats(self) -> tuple[float, float]:
+        """(median, max) of each sample's delay above the envelope, s: the link's latency jitter."""
+        if self._fit is None or not self._samples:
+            return float("nan"), float("nan")
+        data = np.asarray(self._samples)
+        intercept, slope = self._fit
+        above = data[:, 1] - (intercept + slope * data[:, 0])
+        return float(np.median(above)), float(np.max(above))
+
+    @property
+    def drift_ppm(self) -> float:
+        """How fast the device clock runs against the host's (positive: device fast)."""
+        return float("nan") if self._fit is None else (1.0 / self._fit[1] - 1.0) * 1e6
+
+
+class TriggerMatcher:
+    """Pairs profiles (by the profiler's trigger count) with MCU triggers (by sequence number).
+
+    The two counters differ by a constant, learnt once per arming: the driver disarms the MCU, waits
+    until the stream is quiet, resets and re-arms it, and then the first profile and the first trigger
+    after arming are the same pulse. Periodic triggers make any other pairing ambiguous by whole periods.
+    """
+
+    def __init__(self, capacity: int = 4096) -> None:
+        self.capacity = capacity
+        self._times: OrderedDict[int, float] = OrderedDict()  # seq -> host trigger time
+        self.offset: int | None = None
+        self._armed = False
+        self._first_seq: int | None = None
+        self._first_count: int | None = None
+
+    def arm(self) -> None:
+        """Forget the pairing; the next trigger and the next profile define it."""
+        self._times.clear()
+        self.offset = None
+        self._armed = True
+        self._first_seq = self._first_count = None
+
+    @property
+    def pairing(self) -> bool:
+        """Armed and waiting for the first trigger and profile."""
+        return self._armed
+
+    def add_trigger(self, seq: int, host_time: float) -> None:
+        if self._armed and self._first_seq is None:
+            self._first_seq = seq
+            self._learn()
+        self._times[seq] = host_time
+        while len(self._times) > self.capacity:
+            self._times.popitem(last=False)
+
+    def note_profile(self, trigger_count: int) -> None:
+        if self._armed and self._first_count is None:
+            self._first_count = trigger_count
+            self._learn()
+
+    def _learn(self) -> None:
+        if self._first_seq is not None and self._first_count is not None:
+            self.offset = (self._first_count - self._first_seq) & 0xFFFFFFFF
+            self._armed = False
+
+    def trigger_time(self, trigger_count: int) -> float | None:
+        if self.offset is None:
+            return None
+        return self._times.get((trigger_count - self.offset) & 0xFFFFFFFF)

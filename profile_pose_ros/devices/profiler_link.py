@@ -1,0 +1,215 @@
+"""The profiler driver without ROS: a connection state machine over a profile source, trigger sync with
+the MCU, drop accounting, and stamping. Frames go out through `emit(frame, stamp_s, synced)`.
+
+States: connecting -> synchronising -> streaming; any error -> backoff -> connecting. It never gives up
+and never raises into the caller: a device fault is a state, a counter and `last_error`.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+from ..core.clock_sync import TriggerMatcher
+from ..core.profiler_protocol import ProfileFrame, ProfilerProtocolError
+from .profile_source import ProfileSource
+from .trigger_link import CONNECTING as CONNECTING_MCU
+from .trigger_link import TriggerLink
+
+CONNECTING, SYNCHRONISING, STREAMING, BACKOFF, STOPPED = (
+    "connecting", "synchronising", "streaming", "backoff", "stopped")
+
+
+@dataclass
+class LinkSettings:
+    stamp_source: str = "trigger"  # trigger | receive
+    max_input_age: float = 1.0  # s without any data from the device -> reconnect (0: never)
+    backoff_min: float = 0.1
+    backoff_max: float = 0.5
+    sync_timeout: float = 0.02  # how long a profile waits for its trigger line
+    sync_quiet: float = 0.05  # quiet time after disarming before the counters are paired
+    resync_after_misses: int = 20  # consecutive unmatched profiles (with the MCU alive) -> pair again
+
+
+@dataclass
+class LinkCounters:
+    frames: int = 0
+    published: int = 0
+    dropped: int = 0  # gaps in the profiler's trigger count: profiles the device took but we never got
+    bad_frames: int = 0
+    unsynced: int = 0  # published with the receive time because no trigger line matched
+    discarded: int = 0  # received while the MCU link starts or counters are paired (trigger time unknown)
+    connections: int = 0
+    resyncs: int = 0
+
+
+class ProfilerLink:
+    def __init__(self, source: ProfileSource, trigger: TriggerLink | None, settings: LinkSettings,
+                 emit: Callable[[ProfileFrame, float, bool], None], log: Callable[[str], None] = print) -> None:
+        if settings.stamp_source not in ("trigger", "receive"):
+            raise ValueError(f"stamp_source must be 'trigger' or 'receive', not {settings.stamp_source!r}")
+        self.source, self.trigger, self.settings = source, trigger, settings
+        self.emit, self.log = emit, log
+        self.counters = LinkCounters()
+        self.state = CONNECTING
+        self.last_error = ""
+        self.last_frame_time = 0.0  # monotonic
+        self.matcher = TriggerMatcher()
+        self._cond = threading.Condition()
+        self._last_count: int | None = None
+        self._misses = 0
+        self._resync = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="profiler-link", daemon=True)
+
+    # ---------------------------------------------------------------- wiring
+    def on_trigger(self, seq: int, host_time: float) -> None:
+        """TriggerLink's callback (its thread)."""
+        with self._cond:
+            self.matcher.add_trigger(seq, host_time)
+            self._cond.notify_all()
+
+    def request_resync(self, reason: str) -> None:
+        self.log(f"re-pairing trigger counters: {reason}")
+        self._resync.set()
+
+    def start(self) -> "ProfilerLink":
+        if self.trigger is not None:
+            self.trigger.on_trigger = self.on_trigger
+            self.trigger.on_resync_needed = self.request_resync
+            self.trigger.start()
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=3.0)
+        if self.trigger is not None:
+            self.trigger.stop()
+        self.state = STOPPED
+
+    # ---------------------------------------------------------------- state machine
+    def _run(self) -> None:
+        backoff = self.settings.backoff_min
+        while not self._stop.is_set():
+            self.state = CONNECTING
+            try:
+                self.source.open()
+                self.counters.connections += 1
+                self._last_count = None
+                backoff = self.settings.backoff_min
+                self._resync.set()
+                self._stream()
+            except (OSError, ProfilerProtocolError, TimeoutError) as exc:
+                self.last_error = f"{self.source.name}: {exc}"
+                self.log(f"profiler link: {self.last_error}; reconnecting in {backoff:.2f} s")
+            except Exception as exc:  # noqa: BLE001 - a device fault must never end the driver
+                self.last_error = f"{self.source.name}: unexpected {exc!r}"
+                self.log(f"profiler link: {self.last_error}")
+            finally:
+                self.source.close()
+            if self._stop.is_set():
+                break
+            self.state = BACKOFF
+            self._stop.wait(backoff)
+            backoff = min(2 * backoff, self.settings.backoff_max)
+
+    def _stream(self) -> None:
+        while not self._stop.is_set():
+            if self._resync.is_set():
+                self._resync.clear()
+                self._synchronise()
+            self.state = STREAMING
+            self._handle(self.source.read(0.05))
+            age = self.source.seconds_since_data()
+            if self.settings.max_input_age > 0 and age > self.settings.max_input_age:
+                raise TimeoutError(f"no data for {age:.2f} s (max_input_age)")
+            if self.trigger is not None and self.trigger.ok and self.matcher.offset is None \
+                    and not self.matcher.pairing and self.settings.stamp_source == "trigger":
+                self._resync.set()  # the MCU came (back) after a failed pairing
+
+    def _synchronise(self) -> None:
+        """Disarm, let the stream go quiet, reset and re-arm the MCU: then the first trigger line and the
+        first profile are the same pulse. Without a live MCU, profiles keep their receive times."""
+        if self.trigger is None or not self.trigger.ok:
+            return
+        self.state = SYNCHRONISING
+        self.counters.resyncs += 1
+        try:
+            if not self.trigger.command("DISARM"):
+                self.last_error = "trigger MCU did not acknowledge DISARM"
+                return
+            quiet_since = time.monotonic()
+            deadline = quiet_since + 1.0
+            while time.monotonic() - quiet_since < self.settings.sync_quiet and time.monotonic() < deadline:
+                items = self.source.read(0.01)
+                if items:
+                    self.counters.discarded += sum(isinstance(i, ProfileFrame) for i in items)
+                    quiet_since = time.monotonic()
+            if not self.trigger.command("RESET"):
+                self.last_error = "trigger MCU did not acknowledge RESET"
+                return
+            with self._cond:
+                self.matcher.arm()
+            self._last_count = None
+            self._misses = 0
+        finally:
+            if not self.trigger.command("ARM"):  # always: a disarmed MCU would stop the whole cell
+                self.last_error = "trigger MCU did not acknowledge ARM"
+
+    # ---------------------------------------------------------------- frames
+    def _handle(self, items: list) -> None:
+        arrival = time.time()
+        for item in items:
+            if isinstance(item, ProfilerProtocolError):
+                self.counters.bad_frames += 1
+                self.last_error = f"bad frame: {item}"
+                continue
+            self._frame(item, arrival)
+
+    def _frame(self, frame: ProfileFrame, arrival: float) -> None:
+        c = self.counters
+        c.frames += 1
+        self.last_frame_time = time.monotonic()
+        if self._last_count is not None:
+            gap = (frame.trigger_count - self._last_count - 1) & 0xFFFFFFFF
+            if gap < 0x80000000:  # a step back means the device restarted its count: not a loss
+                c.dropped += gap
+        self._last_count = frame.trigger_count
+        stamp = self._trigger_time(frame.trigger_count)
+        synced = stamp is not None
+        if not synced and self._mcu_starting():
+            c.discarded += 1  # a stamp from the receive time now would be ms off; the MCU is moments away
+            return
+        if not synced:
+            c.unsynced += 1
+            stamp = arrival
+        self.emit(frame, stamp, synced)
+        c.published += 1
+
+    def _mcu_starting(self) -> bool:
+        """The MCU link is configured and opening, training its clock or pairing counters."""
+        if self.trigger is None or self.settings.stamp_source != "trigger":
+            return False
+        return self.trigger.state == CONNECTING_MCU or self.matcher.pairing
+
+    def _trigger_time(self, trigger_count: int) -> float | None:
+        with self._cond:
+            self.matcher.note_profile(trigger_count)
+            if self.settings.stamp_source != "trigger" or not (self.matcher.offset is not None
+                                                                  or self.matcher.pairing):
+                return None
+            alive = self.trigger is not None and self.trigger.ok
+            self._cond.wait_for(lambda: self.matcher.trigger_time(trigger_count) is not None,
+                                timeout=self.settings.sync_timeout if alive else 0.0)
+            stamp = self.matcher.trigger_time(trigger_count)
+        if stamp is None and alive:
+            self._misses += 1
+            if self._misses >= self.settings.resync_after_misses:
+                self._misses = 0
+                self.request_resync(f"{self.settings.resync_after_misses} profiles in a row without their trigger")
+        elif stamp is not None:
+            self._misses = 0
+        return stamp

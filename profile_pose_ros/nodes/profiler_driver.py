@@ -1,0 +1,149 @@
+"""profiler_driver: the profiler (sim_cell over TCP, or a Keyence LJ-X8000 through libljxacom.so) ->
+`profile` (PointCloud2 as DESIGN.md fixes it, sensor-data QoS), stamped with the trigger's host time.
+
+Thin glue around devices.profiler_link.ProfilerLink, which owns the connection thread; this node only
+declares parameters, publishes what the link emits, and reports /diagnostics.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from rclpy.time import Time
+from sensor_msgs.msg import PointCloud2
+
+from ..core.profiler_protocol import ProfileFrame
+from ..devices.ljx import LjxProfileSource
+from ..devices.profile_source import SimProfileSource
+from ..devices.profiler_link import STREAMING, LinkSettings, ProfilerLink
+from ..devices.trigger_link import TriggerLink
+from .diagnostics import ERROR, OK, WARN, diagnostic_array
+from .messages import cloud_from_points
+from .parameters import Param, declare_all
+from .run import run_node
+
+NODE_NAME = "profiler_driver"
+BACKENDS = ("sim", "ljx")
+
+GIL_SWITCH_INTERVAL = 2e-4  # s; CPython's default is 5 ms
+
+PARAMETERS = [
+    Param("backend", "sim", "Profiler backend: 'sim' (sim_cell's TCP protocol) or 'ljx' (Keyence LJ-X8000 "
+          "through libljxacom.so).", read_only=True),
+    Param("host", "127.0.0.1", "Profiler controller address.", read_only=True),
+    Param("port", 24692, "Profiler data port (LJ-X8000: high-speed data port, default 24692).", 1, 65535,
+          read_only=True),
+    Param("command_port", 24691, "ljx: the controller's command port.", 1, 65535, read_only=True),
+    Param("library_path", "libljxacom.so", "ljx: path of Keyence's Linux communication library.", read_only=True),
+    Param("device_id", 0, "ljx: the library's device slot (0-5).", 0, 5, read_only=True),
+    Param("serial_url", "", "Trigger MCU: a serial device or pyserial URL (socket://127.0.0.1:24693 for "
+          "sim_cell); empty: no MCU, profiles are stamped with their receive time.", read_only=True),
+    Param("baudrate", 1000000, "Trigger MCU baud rate (also used to subtract each line's transmission time).",
+          9600, 4000000, read_only=True),
+    Param("stamp_source", "trigger", "'trigger': the trigger's host time via the MCU clock; 'receive': arrival "
+          "time (falls back to this while the MCU is silent).", read_only=True),
+    Param("trigger_latency", 0.0, "Delay from a trigger's line leaving the MCU to its arrival here, beyond "
+          "transmission (s): a USB adapter's latency; measure it once per cell. -1: half the fastest PING round "
+          "trip (assumes a symmetric link).", -1.0, 0.05, read_only=True),
+    Param("sync_timeout", 0.02, "How long a profile may wait for its trigger line (s).", 0.0, 0.1,
+          read_only=True),
+    Param("frame_id", "profiler", "frame_id of the published profiles (the profiler frame F)."),
+    Param("max_input_age", 1.0, "Reconnect when the device sends nothing for this long (s); 0 disables "
+          "(ljx in external-trigger mode sends nothing between triggers).", 0.0, 60.0, read_only=True),
+    Param("reconnect_min", 0.1, "First reconnect delay (s); doubles up to reconnect_max.", 0.01, 10.0,
+          read_only=True),
+    Param("reconnect_max", 0.5, "Longest reconnect delay (s).", 0.01, 60.0, read_only=True),
+    Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
+]
+
+
+def make_source(v: dict):
+    if v["backend"] == "sim":
+        return SimProfileSource(v["host"], v["port"])
+    if v["backend"] == "ljx":
+        return LjxProfileSource(v["library_path"], v["host"], v["command_port"], v["port"], v["device_id"])
+    raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, not {v['backend']!r}")
+
+
+class ProfilerDriverNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        v = self.values = declare_all(self, PARAMETERS)
+        source = make_source(v)
+        trigger = None
+        if v["serial_url"]:
+            trigger = TriggerLink(v["serial_url"], v["baudrate"], on_trigger=lambda *_: None,
+                                  on_resync_needed=lambda _: None, trigger_latency=v["trigger_latency"])
+        settings = LinkSettings(stamp_source=v["stamp_source"], max_input_age=v["max_input_age"],
+                                backoff_min=v["reconnect_min"], backoff_max=max(v["reconnect_min"],
+                                                                                v["reconnect_max"]),
+                                sync_timeout=v["sync_timeout"])
+        self.profile_pub = self.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        logger = self.get_logger()
+        self.link = ProfilerLink(source, trigger, settings, self._emit,
+                                 log=lambda text: logger.warn(text, throttle_duration_sec=1.0))
+        self._window = (time.monotonic(), 0, 0, 0)
+        self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
+        self.link.start()
+        logger.info(f"profiler {source.name}, trigger MCU {v['serial_url'] or 'none'}, "
+                    f"stamps from {v['stamp_source']}")
+
+    def _emit(self, frame: ProfileFrame, stamp: float, synced: bool) -> None:
+        """Runs on the link's thread."""
+        stamp_msg = Time(nanoseconds=int(round(stamp * 1e9))).to_msg()
+        self.profile_pub.publish(cloud_from_points(frame.points, stamp_msg, self.values["frame_id"]))
+
+    def _publish_diagnostics(self) -> None:
+        link, c, trigger = self.link, self.link.counters, self.link.trigger
+        now = time.monotonic()
+        start, published0, dropped0, bad0 = self._window
+        self._window = (now, c.published, c.dropped, c.bad_frames)
+        elapsed = max(now - start, 1e-9)
+        rate = (c.published - published0) / elapsed
+        new_drops, new_bad = c.dropped - dropped0, c.bad_frames - bad0
+        if link.state != STREAMING:
+            level, message = ERROR, f"{link.state}: {link.last_error or 'no connection yet'}"
+        elif trigger is not None and not trigger.ok:
+            level, message = WARN, f"trigger MCU {trigger.state} ({trigger.last_error}); stamping with receive time"
+        elif new_drops or new_bad:
+            level, message = WARN, f"{new_drops} profiles dropped, {new_bad} bad frames in {elapsed:.1f} s"
+        elif rate == 0:
+            level, message = WARN, "connected, no profiles (no triggers?)"
+        else:
+            level, message = OK, f"streaming at {rate:.1f} Hz"
+        values = {"state": link.state, "rate_hz": rate, "profiles_published": c.published,
+                  "profiles_dropped": c.dropped, "bad_frames": c.bad_frames, "unsynced_profiles": c.unsynced,
+                  "discarded_while_pairing": c.discarded, "connections": c.connections, "pairings": c.resyncs,
+                  "last_error": link.last_error or "none", "source": link.source.name}
+        if trigger is not None:
+            jitter_median, jitter_max = trigger.clock.residual_stats()
+            values.update({"trigger_state": trigger.state, "trigger_lines": trigger.lines,
+                           "trigger_bad_lines": trigger.bad_lines, "triggers_lost": trigger.triggers_lost,
+                           "trigger_port_reopens": trigger.reopens, "trigger_error": trigger.last_error or "none",
+                           "trigger_count_offset": link.matcher.offset if link.matcher.offset is not None else "none",
+                           "mcu_clock_drift_ppm": trigger.clock.drift_ppm,
+                           "mcu_clock": "converged" if trigger.clock.converged else "converging",
+                           "serial_latency_us": trigger.latency * 1e6,
+                           "fastest_ping_round_trip_us": trigger.fastest_round_trip * 1e6,
+                           "kernel_timestamps": trigger.kernel_timestamps,
+                           "sync_jitter_median_us": jitter_median * 1e6, "sync_jitter_max_us": jitter_max * 1e6})
+        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(),
+                                                      f"{self.get_name()}: profiler", link.source.name,
+                                                      level, message, values))
+
+    def destroy_node(self) -> None:
+        self.link.stop()
+        super().destroy_node()
+
+
+def main(args=None) -> int:
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # the serial thread timestamps trigger lines; it must not wait for the GIL
+    return run_node(ProfilerDriverNode, NODE_NAME, args, startup_errors=(ValueError, OSError))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

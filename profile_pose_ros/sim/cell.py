@@ -1,0 +1,120 @@
+"""The simulated cell without ROS: a gauge in the world, the profiler on a moving flange, the trigger MCU
+and the profiler device, and the robot controller's per-cycle signal that drives them.
+
+Each signal: the MCU fires (if armed), the profiler counts the trigger and renders what it sees at the
+profiler's true pose at that instant, and the truth goes to `on_truth` (sim_cell publishes it as
+/sim/ground_truth, the paper's VICON).
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..core.gauge import Gauge
+from ..core.render import DEFAULT_PROFILER, ProfilerModel, render_profile
+from .motion import MotionSource
+from .profiler_device import ProfilerDevice
+from .trigger_mcu import TriggerMcu
+
+
+@dataclass(frozen=True)
+class Truth:
+    trigger_count: int  # the profiler's count for this trigger
+    seq: int  # the MCU's sequence number
+    time_ns: int  # host wall-clock time of the trigger (the stamp a perfect driver would give)
+    rotation: np.ndarray
+    translation: np.ndarray
+    frame: str  # what happened to its frame: sent, dropped, corrupted (...)
+
+
+@dataclass
+class SensorNoise:
+    noise_std: float = 5e-6  # m, depth repeatability (LJ-X8400: 5 um)
+    spike_fraction: float = 0.0
+
+
+class SimCell:
+    def __init__(self, gauge: Gauge, motion: MotionSource, profiler: ProfilerDevice, mcu: TriggerMcu,
+                 noise: SensorNoise | None = None, model: ProfilerModel = DEFAULT_PROFILER,
+                 on_truth: Callable[[Truth], None] | None = None, seed: int = 2) -> None:
+        self.gauge, self.motion, self.profiler, self.mcu = gauge, motion, profiler, mcu
+        self.noise = noise or SensorNoise()
+        self.model = model
+        self.on_truth = on_truth
+        self.rng = np.random.default_rng(seed)
+        self.start_ns = time.monotonic_ns()
+        self.signals = 0
+        self.late_signals = 0  # signals the clock could not fire on time (this machine overloaded)
+        self._lock = threading.Lock()
+        self._clock: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    def start(self) -> "SimCell":
+        self.profiler.start()
+        self.mcu.start()
+        return self
+
+    def robot_signal(self, final: bool = False) -> Truth | None:
+        """One per-cycle output edge of the robot controller. Thread-safe; returns the truth if it fired."""
+        with self._lock:
+            mono = time.monotonic_ns()
+            wall = time.time_ns()
+            self.signals += 1
+            seq = self.mcu.robot_signal(mono)
+            if seq is None:
+                return None
+            rotation, translation = self.motion.pose_at((mono - self.start_ns) * 1e-9)
+            device_us = (mono - self.profiler.boot_ns) // 1000
+            points = render_profile(self.gauge, rotation, translation, noise_std=self.noise.noise_std,
+                                    spike_fraction=self.noise.spike_fraction, rng=self.rng, profiler=self.model)
+            status = self.profiler.trigger(device_us, self.model.x_start, self.model.x_pitch, points[:, 1],
+                                           final=final)
+            truth = Truth(self.profiler.trigger_count, seq, wall, rotation, translation, status)
+        if self.on_truth is not None:
+            self.on_truth(truth)
+        return truth
+
+    def run_clock(self, rate_hz: float, max_triggers: int = 0) -> None:
+        """Signal at rate_hz from a thread (absolute deadlines, so late cycles do not drift the rate),
+        replacing a running clock; rate 0 stops it. max_triggers counts from now (0: no limit)."""
+        self.stop_clock()
+        if rate_hz <= 0:
+            return
+        self._stop.clear()
+        self._clock = threading.Thread(target=self._clock_loop, args=(rate_hz, max_triggers), name="cell-clock",
+                                       daemon=True)
+        self._clock.start()
+
+    def _clock_loop(self, rate_hz: float, max_triggers: int) -> None:
+        period = 1.0 / rate_hz
+        deadline = time.monotonic() + period
+        fired = 0
+        while not self._stop.is_set():
+            delay = deadline - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+                if self._stop.is_set():
+                    return
+            elif delay < -period:
+                self.late_signals += 1
+            final = max_triggers > 0 and fired + 1 >= max_triggers
+            if self.robot_signal(final=final) is not None:
+                fired += 1
+                if final:
+                    return
+            deadline += period
+
+    def stop_clock(self) -> None:
+        self._stop.set()
+        if self._clock is not None and self._clock.is_alive() and self._clock is not threading.current_thread():
+            self._clock.join(timeout=2.0)
+        self._clock = None
+
+    def close(self) -> None:
+        self.stop_clock()
+        self.profiler.close()
+        self.mcu.close()

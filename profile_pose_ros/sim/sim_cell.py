@@ -1,0 +1,161 @@
+"""sim_cell: the simulated cell as a ROS node: the profiler on TCP, the trigger MCU as a pyserial
+socket:// URL, /sim/ground_truth, /diagnostics, and faults switched by parameters at run time."""
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.time import Time
+
+from ..core.gauge import Gauge, GaugeError
+from ..core.render import DEFAULT_PROFILER
+from ..nodes.diagnostics import OK, WARN, diagnostic_array
+from ..nodes.messages import pose_stamped
+from ..nodes.parameters import Param, declare_all
+from ..nodes.run import run_node
+from ..resources import DEFAULT_GAUGE, config_path
+from .cell import SensorNoise, SimCell, Truth
+from .motion import ScriptedMotion, pose_from_vector, steps_from_lists
+from .profiler_device import CORRUPT_MODES, ProfilerDevice, ProfilerFaults
+from .trigger_mcu import McuFaults, TriggerMcu
+
+NODE_NAME = "sim_cell"
+DEFAULT_POSE = [0.0, 0.0, 0.45, math.pi, 0.0, 0.0]  # looking straight down from 0.45 m (F z = -G z)
+
+GIL_SWITCH_INTERVAL = 2e-4  # s; CPython's default is 5 ms
+
+PARAMETERS = [
+    Param("gauge_file", "", "Gauge YAML; empty: the shipped config/gauge_paper_n5.yaml.", read_only=True),
+    Param("gauge_frame", "gauge", "frame_id of /sim/ground_truth."),
+    Param("host", "127.0.0.1", "Address the simulated devices listen on.", read_only=True),
+    Param("profiler_port", 24692, "Profiler data port (0: any free port, see the log).", 0, 65535, read_only=True),
+    Param("mcu_port", 24693, "Trigger MCU port, for serial_url socket://host:port (0: any free port).", 0, 65535,
+          read_only=True),
+    Param("trigger_rate", 83.333, "Robot signal rate, Hz (0: no internal clock); setting it (re)starts the clock.",
+          0.0, 2000.0),
+    Param("max_triggers", 0, "Stop triggering after this many from the clock's start (0: never).", 0, 2 ** 31 - 1),
+    Param("profiler_pose", DEFAULT_POSE, "Nominal pose of F in G: x y z (m) and rotation vector (rad).",
+          read_only=True),
+    Param("sine_amplitude", [0.0] * 6, "Sine motion amplitude per axis x y z rx ry rz (m, rad).", read_only=True),
+    Param("sine_frequency", [0.0] * 6, "Sine motion frequency per axis (Hz).", read_only=True),
+    Param("step_times", [0.0], "Scripted steps: times (s after start); with step_axes and step_sizes.",
+          read_only=True),
+    Param("step_axes", [""], "Scripted steps: axis of each (x y z rx ry rz); '' for none.", read_only=True),
+    Param("step_sizes", [0.0], "Scripted steps: size of each (m or rad).", read_only=True),
+    Param("noise_std", 5e-6, "Profiler depth noise (m).", 0.0, 1e-3),
+    Param("spike_fraction", 0.0, "Fraction of points replaced by glints.", 0.0, 0.5),
+    Param("seed", 0, "Random seed of noise and faults.", 0, 2 ** 31 - 1, read_only=True),
+    Param("drop_fraction", 0.0, "Fault: fraction of frames never sent.", 0.0, 1.0),
+    Param("delay_ms", 0.0, "Fault: extra delay of every frame (ms).", 0.0, 10000.0),
+    Param("corrupt_fraction", 0.0, "Fault: fraction of frames damaged.", 0.0, 1.0),
+    Param("corrupt_mode", "mixed", f"Fault: how frames are damaged: {', '.join(CORRUPT_MODES)} or mixed."),
+    Param("close_after_frames", 0, "Fault: close the profiler connection after every N frames (0: never).",
+          0, 2 ** 31 - 1),
+    Param("mcu_silent", False, "Fault: the MCU fires but writes and answers nothing."),
+    Param("mcu_garbage_fraction", 0.0, "Fault: fraction of triggers preceded by a line of noise.", 0.0, 1.0),
+    Param("mcu_baudrate", 1000000, "MCU serial baud rate (line transmission time).", 9600, 4000000, read_only=True),
+    Param("mcu_drift_ppm", 300.0, "MCU clock error (ppm).", -10000.0, 10000.0, read_only=True),
+    Param("mcu_micros_start", 0, "MCU micros() at start (to exercise the 32-bit wrap).", 0, 2 ** 32 - 1,
+          read_only=True),
+    Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
+]
+
+_FAULTS = {"drop_fraction", "delay_ms", "corrupt_fraction", "corrupt_mode", "close_after_frames",
+           "mcu_silent", "mcu_garbage_fraction", "noise_std", "spike_fraction"}
+_CLOCK = {"trigger_rate", "max_triggers"}
+
+
+def motion_from(values: dict) -> ScriptedMotion:
+    rotation, translation = pose_from_vector(np.array(values["profiler_pose"], float))
+    axes = [a for a in values["step_axes"]]
+    times, sizes = list(values["step_times"]), list(values["step_sizes"])
+    if axes == [""]:
+        times, axes, sizes = [], [], []
+    return ScriptedMotion(rotation, translation, steps_from_lists(times, axes, sizes),
+                          np.array(values["sine_amplitude"], float), np.array(values["sine_frequency"], float))
+
+
+class SimCellNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        v = self.values = declare_all(self, PARAMETERS)
+        gauge_file = v["gauge_file"] or str(config_path(DEFAULT_GAUGE))
+        self.gauge = Gauge.from_yaml(gauge_file)
+        motion = motion_from(v)  # ValueError: main() reports it
+        if v["corrupt_mode"] not in CORRUPT_MODES + ("mixed",):
+            raise ValueError(f"corrupt_mode {v['corrupt_mode']!r} is not one of {CORRUPT_MODES + ('mixed',)}")
+        profiler = ProfilerDevice(v["host"], v["profiler_port"], faults=ProfilerFaults(), seed=v["seed"])
+        mcu = TriggerMcu(v["host"], v["mcu_port"], baudrate=v["mcu_baudrate"], drift_ppm=v["mcu_drift_ppm"],
+                         micros_start=v["mcu_micros_start"], faults=McuFaults(), seed=v["seed"] + 1)
+        self.cell = SimCell(self.gauge, motion, profiler, mcu, SensorNoise(), DEFAULT_PROFILER,
+                            on_truth=self._publish_truth, seed=v["seed"] + 2)
+        self._apply_faults(v)
+        self.truth_pub = self.create_publisher(PoseStamped, "/sim/ground_truth", 100)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.cell.start()
+        if v["trigger_rate"] > 0:
+            self.cell.run_clock(v["trigger_rate"], v["max_triggers"])
+        self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
+        self.get_logger().info(
+            f"profiler on tcp://{profiler.server.host}:{profiler.port}, trigger MCU on {mcu.url}, "
+            f"gauge '{self.gauge.name}', {v['trigger_rate']:.3f} Hz")
+
+    def _apply_faults(self, v: dict) -> None:
+        f = self.cell.profiler.faults
+        f.drop_fraction, f.delay_s = v["drop_fraction"], v["delay_ms"] * 1e-3
+        f.corrupt_fraction, f.corrupt_mode = v["corrupt_fraction"], v["corrupt_mode"]
+        f.close_after_frames = v["close_after_frames"]
+        m = self.cell.mcu.faults
+        m.silent, m.garbage_fraction = v["mcu_silent"], v["mcu_garbage_fraction"]
+        self.cell.noise.noise_std, self.cell.noise.spike_fraction = v["noise_std"], v["spike_fraction"]
+
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        values = dict(self.values)
+        values.update({p.name: p.value for p in parameters})
+        if values["corrupt_mode"] not in CORRUPT_MODES + ("mixed",):
+            return SetParametersResult(successful=False, reason=f"unknown corrupt_mode {values['corrupt_mode']!r}")
+        names = {p.name for p in parameters}
+        if names - _FAULTS - _CLOCK:
+            return SetParametersResult(successful=False, reason="only faults, noise and the clock change at run time")
+        self.values = values
+        self._apply_faults(values)
+        if names & _CLOCK:
+            self.cell.run_clock(values["trigger_rate"], values["max_triggers"])
+        return SetParametersResult(successful=True)
+
+    def _publish_truth(self, truth: Truth) -> None:
+        stamp = Time(nanoseconds=truth.time_ns).to_msg()
+        self.truth_pub.publish(pose_stamped(truth.rotation, truth.translation, stamp, self.values["gauge_frame"]))
+
+    def _publish_diagnostics(self) -> None:
+        p, m, c = self.cell.profiler, self.cell.mcu, self.cell
+        faults = {k: self.values[k] for k in sorted(_FAULTS)}
+        active = {k: val for k, val in faults.items() if val and k not in ("noise_std", "corrupt_mode")}
+        level, message = (WARN, f"faults injected: {active}") if active else (OK, "simulating")
+        values = {"triggers": p.trigger_count, "mcu_seq": m.seq, "mcu_armed": m.armed, "signals": c.signals,
+                  "late_signals": c.late_signals, "frames_sent": p.frames_sent, "frames_dropped": p.frames_dropped,
+                  "frames_corrupted": p.frames_corrupted, "frames_unsent": p.frames_unsent,
+                  "profiler_connections": p.server.connections, "profiler_closes": p.closes,
+                  "mcu_connections": m.server.connections, "mcu_lines": m.lines_sent,
+                  "profiler_port": p.port, "mcu_url": m.url, **faults}
+        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: cell",
+                                                      "sim_cell", level, message, values))
+
+    def destroy_node(self) -> None:
+        self.cell.close()
+        super().destroy_node()
+
+
+def main(args=None) -> int:
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # the device threads must meet their deadlines while the clock thread renders
+    return run_node(SimCellNode, NODE_NAME, args, startup_errors=(GaugeError, ValueError, OSError))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,101 @@
+"""Several package executables, each its own process on one private DDS domain, plus a client node here
+to watch them: what the checks, the experiment and the soak run against."""
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+from . import processes
+
+MODULES = {
+    "sim_cell": "profile_pose_ros.sim.sim_cell",
+    "profiler_driver": "profile_pose_ros.nodes.profiler_driver",
+    "pose_estimator": "profile_pose_ros.nodes.pose_estimator",
+}
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 right now (the OS picks it)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def ros_params(values: dict) -> list[str]:
+    args = []
+    for name, value in values.items():
+        if isinstance(value, bool):
+            text = "true" if value else "false"
+        elif isinstance(value, (list, tuple)):
+            text = "[" + ",".join(repr(v) if isinstance(v, str) else str(v) for v in value) + "]"
+        else:
+            text = str(value)
+        args += ["-p", f"{name}:={text}"]
+    return args
+
+
+class Graph:
+    def __init__(self, log_dir: Path, domain_id: int | None = None, client_name: str = "graph_client") -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.domain_id = domain_id if domain_id is not None else 1 + (os.getpid() * 7) % 200
+        self.processes: dict[str, subprocess.Popen] = {}
+        self.rclpy = rclpy
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=self.domain_id)
+        self.node = rclpy.create_node(client_name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._parameter_clients: dict = {}
+
+    def start(self, executable: str, params: dict | None = None, name: str | None = None) -> subprocess.Popen:
+        name = name or executable
+        command = processes.executable(executable, MODULES[executable]) + ["--ros-args", *ros_params(params or {})]
+        process = processes.start(command, self.domain_id, self.log_dir / f"{name}.log")
+        self.processes[name] = process
+        return process
+
+    def stop(self, name: str) -> int:
+        return processes.stop(self.processes.pop(name))
+
+    def spin_until(self, condition, timeout: float) -> bool:
+        """Spin the client until condition() or the deadline; a node process that died is an error."""
+        deadline = time.monotonic() + timeout
+        while not condition() and time.monotonic() < deadline:
+            for name, process in self.processes.items():
+                if process.poll() is not None:
+                    raise RuntimeError(f"{name} exited with {process.returncode}; see {self.log_dir / name}.log")
+            self.executor.spin_once(timeout_sec=0.01)
+        return bool(condition())
+
+    def set_parameters(self, node_name: str, values: dict, timeout: float = 10.0) -> None:
+        """Set parameters of a running node through its service; raises if refused or unanswered."""
+        from rclpy.parameter import Parameter
+        from rclpy.parameter_client import AsyncParameterClient
+
+        if node_name not in self._parameter_clients:
+            self._parameter_clients[node_name] = AsyncParameterClient(self.node, node_name)
+        client = self._parameter_clients[node_name]
+        if not client.wait_for_services(timeout_sec=timeout):
+            raise RuntimeError(f"{node_name}'s parameter services are not available")
+        future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+        self.spin_until(future.done, timeout)
+        if not future.done():
+            raise RuntimeError(f"{node_name} did not answer set_parameters")
+        refused = [r.reason for r in future.result().results if not r.successful]
+        if refused:
+            raise RuntimeError(f"{node_name} refused {values}: {refused}")
+
+    def close(self) -> None:
+        for name in reversed(list(self.processes)):  # consumers first, the cell last
+            self.stop(name)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.shutdown(context=self.context)

@@ -1,0 +1,168 @@
+"""profile_pose_profiler_check: sim_cell + profiler_driver + pose_estimator, each its own process, checked
+against /sim/ground_truth.
+
+The profiler moves (sines on every axis) so that a profile paired with the wrong trigger shows as a pose
+error. Reported per rate: profile stamps minus true trigger times (median, max), pose errors against
+the truth at the pose's stamp, profiles and poses delivered, and the drops sim_cell made against the
+drops the driver counted.
+"""
+from __future__ import annotations
+
+import argparse
+import struct
+import sys
+
+import numpy as np
+
+from ..core.rotation import rotation_angle
+from ..nodes.messages import rotation_translation
+from .graph import Graph, free_port
+from .report import run_dir, summary, table, write_json
+
+SINES = {"sine_amplitude": [2e-3, 1e-3, 1e-3, 2e-3, 1e-3, 2e-3], "sine_frequency": [0.5, 0.7, 0.3, 0.4, 0.6, 0.2]}
+CDR_STAMP = struct.Struct("<4xiI")  # encapsulation header, then header.stamp (sec, nanosec)
+
+
+def stamp_ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class CheckRun:
+    def __init__(self, graph: Graph, rate_hz: float, seconds: float, noise_std: float, drop_fraction: float,
+                 seed: int = 0) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import PointCloud2
+
+        self.graph, self.rate_hz = graph, rate_hz
+        self.triggers = int(round(rate_hz * seconds))
+        profiler_port, mcu_port = free_port(), free_port()
+        graph.start("sim_cell", {"profiler_port": profiler_port, "mcu_port": mcu_port, "trigger_rate": 0.0,
+                                 "noise_std": noise_std, "drop_fraction": drop_fraction, "seed": seed,
+                                 "diagnostics_period": 0.5, **SINES})
+        graph.start("profiler_driver", {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}",
+                                        "diagnostics_period": 0.5})
+        graph.start("pose_estimator", {"diagnostics_period": 0.5})
+        self.truth: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.profile_stamps: list[int] = []
+        self.poses: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self.diagnostics: dict[str, dict] = {}
+        node = graph.node
+        node.create_subscription(PoseStamped, "/sim/ground_truth", self._on_truth, 5000)
+        node.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data, raw=True)
+        node.create_subscription(PoseStamped, "pose", self._on_pose, 5000)
+        node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
+        self.seed = seed
+
+    def _on_truth(self, msg) -> None:
+        self.truth[stamp_ns(msg.header.stamp)] = rotation_translation(msg.pose)
+
+    def _on_profile(self, raw: bytes) -> None:
+        sec, nanosec = CDR_STAMP.unpack_from(raw)  # the stamp only: no need to decode 3200 points here
+        self.profile_stamps.append(sec * 1_000_000_000 + nanosec)
+
+    def _on_pose(self, msg) -> None:
+        self.poses.append((stamp_ns(msg.header.stamp), *rotation_translation(msg.pose)))
+
+    def _on_diagnostics(self, msg) -> None:
+        for status in msg.status:
+            self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+
+    def value(self, node: str, key: str, default: str = "0") -> str:
+        for name, values in self.diagnostics.items():
+            if name.startswith(node):
+                return values.get(key, default)
+        return default
+
+    def run(self) -> dict:
+        """Start the cell's clock once the driver streams, run `triggers` cycles, then compare."""
+        g = self.graph
+        if not g.spin_until(lambda: self.value("profiler_driver", "trigger_state", "") == "ok"
+                            and self.value("profiler_driver", "state", "") == "streaming", 60.0):
+            raise RuntimeError(f"the driver never connected; see {g.log_dir}")
+        if not g.spin_until(lambda: self.value("pose_estimator", "gauge", "") != "", 60.0):
+            raise RuntimeError("pose_estimator did not come up")
+        self._start_clock()
+        expected = lambda: int(self.value("sim_cell", "triggers")) >= self.triggers  # noqa: E731
+        g.spin_until(expected, self.triggers / self.rate_hz + 30.0)
+        last = lambda: len(self.truth) and self.profile_stamps and max(self.profile_stamps) >= max(self.truth)  # noqa
+        g.spin_until(last, 5.0)
+        g.spin_until(lambda: False, 1.2)  # the last diagnostics of every node
+        return self._compare()
+
+    def _start_clock(self) -> None:
+        self.graph.set_parameters("sim_cell", {"trigger_rate": self.rate_hz, "max_triggers": self.triggers})
+
+    def _compare(self) -> dict:
+        truth_stamps = np.array(sorted(self.truth))
+        stamps = np.array(self.profile_stamps, dtype=np.int64)
+        idx = np.searchsorted(truth_stamps, stamps)
+        lo = truth_stamps[np.clip(idx - 1, 0, len(truth_stamps) - 1)]
+        hi = truth_stamps[np.clip(idx, 0, len(truth_stamps) - 1)]
+        nearest = np.where(np.abs(stamps - lo) <= np.abs(hi - stamps), lo, hi)
+        stamp_error_us = (stamps - nearest) * 1e-3
+        np.savez_compressed(self.graph.log_dir / "stamp_errors.npz", profile_stamp_ns=stamps,
+                            stamp_error_us=stamp_error_us)
+        position, rotation, unmatched = [], [], 0
+        for stamp, r, t in self.poses:
+            k = np.searchsorted(truth_stamps, stamp)
+            candidates = [truth_stamps[j] for j in (k - 1, k) if 0 <= j < len(truth_stamps)]
+            best = min(candidates, key=lambda s: abs(s - stamp))
+            if abs(best - stamp) > 0.5e9 / self.rate_hz:
+                unmatched += 1
+                continue
+            true_r, true_t = self.truth[best]
+            position.append(np.linalg.norm(t - true_t))
+            rotation.append(rotation_angle(r, true_r))
+        return {
+            "rate_hz": self.rate_hz, "triggers": len(self.truth), "profiles": len(stamps), "poses": len(self.poses),
+            "stamp_error_us": summary(np.abs(stamp_error_us)), "stamp_bias_us": float(np.median(stamp_error_us)),
+            "position_error_um": summary(np.array(position) * 1e6),
+            "rotation_error_urad": summary(np.array(rotation) * 1e6), "poses_without_truth": unmatched,
+            "sim_frames_dropped": int(self.value("sim_cell", "frames_dropped")),
+            "driver_profiles_dropped": int(self.value("profiler_driver", "profiles_dropped")),
+            "driver_published": int(self.value("profiler_driver", "profiles_published")),
+            "estimator_published": int(self.value("pose_estimator", "poses_published")),
+            "driver_unsynced": int(self.value("profiler_driver", "unsynced_profiles")),
+            "driver_discarded": int(self.value("profiler_driver", "discarded_while_pairing")),
+            "estimator_rejected": int(self.value("pose_estimator", "profiles_rejected")),
+            "estimator_lost": int(self.value("pose_estimator", "profiles_lost")),
+            "driver_serial_latency_us": float(self.value("profiler_driver", "serial_latency_us", "nan")),
+            "driver_mcu_drift_ppm": float(self.value("profiler_driver", "mcu_clock_drift_ppm", "nan")),
+        }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rates", type=float, nargs="+", default=[83.333, 1000.0])
+    parser.add_argument("--seconds", type=float, default=60.0)
+    parser.add_argument("--noise", type=float, default=0.0, help="profile depth noise (m); 0 shows exactness")
+    parser.add_argument("--drop", type=float, default=0.0, help="fraction of frames sim_cell drops")
+    parser.add_argument("--out", default="runs")
+    args = parser.parse_args(argv)
+    out = run_dir(args.out, "profiler-check")
+    results, rows = [], []
+    for k, rate in enumerate(args.rates):
+        print(f"{rate:g} Hz for {args.seconds:g} s ...", flush=True)
+        graph = Graph(out / f"{rate:g}Hz", client_name="profiler_check")
+        try:
+            r = CheckRun(graph, rate, args.seconds, args.noise, args.drop, seed=k).run()
+        finally:
+            graph.close()
+        results.append(r)
+        s, p, q = r["stamp_error_us"], r["position_error_um"], r["rotation_error_urad"]
+        rows.append([f"{rate:g} Hz", f"{r['profiles']}/{r['triggers']}", f"{r['poses']}", s["median"], s["max"],
+                     p["median"], p["max"], q["median"], q["max"],
+                     f"{r['sim_frames_dropped']}/{r['driver_profiles_dropped']}", str(r["driver_unsynced"])])
+    print(table(["rate", "profiles/triggers", "poses", "|stamp err| median (us)", "max", "position err median (um)",
+                 "max", "rotation err median (urad)", "max", "drops sim/driver", "unsynced"], rows,
+                f"sim_cell -> profiler_driver -> pose_estimator (noise {args.noise * 1e6:g} um, "
+                f"drop {100 * args.drop:g} %)"))
+    write_json(out / "profiler_check.json", {"noise_std": args.noise, "drop_fraction": args.drop, "runs": results})
+    print(f"results: {out / 'profiler_check.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
