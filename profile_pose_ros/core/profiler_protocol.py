@@ -20,7 +20,7 @@ FRAME_TYPES = (TYPE_PROFILE, TYPE_HEARTBEAT)
 
 HEADER = struct.Struct("<4sBBHIQIdd")  # magic, version, type, reserved, trigger, device_us, n, x0, pitch
 CRC = struct.Struct("<I")
-HEADER_SIZE = HEADER.size  # 40
+HEADER_SIZE = HEADER.size + CRC.size  # 44: the header has its own CRC, so a damaged length is caught at once
 MAX_POINTS = 65535
 
 Z_UNIT = 1e-8  # m per count (0.01 um, the LJ-X8000's height unit)
@@ -71,7 +71,7 @@ def encode_frame(trigger_count: int, device_time_us: int, x_start: float, x_pitc
     counts = z_counts(z) if z is not None else np.zeros(0, dtype="<i4")
     header = HEADER.pack(MAGIC, version, frame_type, 0, trigger_count & 0xFFFFFFFF,
                          device_time_us & 0xFFFFFFFFFFFFFFFF, len(counts), x_start, x_pitch)
-    body = header + counts.tobytes()
+    body = header + CRC.pack(zlib.crc32(header)) + counts.tobytes()
     return body + CRC.pack(zlib.crc32(body))
 
 
@@ -79,12 +79,14 @@ def decode_frame(data: bytes) -> ProfileFrame:
     """Exactly one complete frame; raises ProfilerProtocolError."""
     decoder = FrameDecoder()
     results = decoder.feed(data)
-    if decoder.buffered:
-        raise ProfilerProtocolError(f"{decoder.buffered} bytes left over (truncated or trailing data)")
+    for result in results:
+        if isinstance(result, ProfilerProtocolError):
+            raise result
+    left = decoder.buffered + decoder.skipped_bytes
+    if left:
+        raise ProfilerProtocolError(f"{left} bytes left over (truncated or trailing data)")
     if len(results) != 1:
-        raise ProfilerProtocolError(f"expected one frame, decoded {len(results)} results")
-    if isinstance(results[0], ProfilerProtocolError):
-        raise results[0]
+        raise ProfilerProtocolError(f"expected one frame, decoded {len(results)}")
     return results[0]
 
 
@@ -130,8 +132,11 @@ class FrameDecoder:
         if len(buf) < HEADER_SIZE:
             return None
         _, version, frame_type, _, trigger, device_us, n, x0, pitch = HEADER.unpack_from(buf)
+        (header_crc,) = CRC.unpack_from(buf, HEADER.size)
         problem = None
-        if version != VERSION:
+        if zlib.crc32(memoryview(buf)[:HEADER.size]) != header_crc:
+            problem = "header checksum mismatch"
+        elif version != VERSION:
             problem = f"unsupported protocol version {version} (this driver speaks {VERSION})"
         elif frame_type not in FRAME_TYPES:
             problem = f"unknown frame type {frame_type}"

@@ -5,11 +5,12 @@ import heapq
 import itertools
 import threading
 import time
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.profiler_protocol import HEADER_SIZE, TYPE_HEARTBEAT, encode_frame
+from ..core.profiler_protocol import CRC, HEADER, HEADER_SIZE, TYPE_HEARTBEAT, encode_frame
 from .peer_server import PeerServer
 
 CORRUPT_MODES = ("flip", "truncate", "version", "garbage")
@@ -35,8 +36,12 @@ def corrupt(frame: bytes, mode: str, rng: np.random.Generator) -> bytes:
         return bytes(data)
     if mode == "truncate":
         return frame[: int(rng.integers(1, len(frame)))]
-    if mode == "version":
-        return frame[:4] + bytes([frame[4] + 1]) + frame[5:]
+    if mode == "version":  # a well-formed frame of a protocol version the driver does not speak
+        fields = list(HEADER.unpack_from(frame))
+        fields[1] += 1
+        header = HEADER.pack(*fields)
+        body = header + CRC.pack(zlib.crc32(header)) + frame[HEADER_SIZE:-CRC.size]
+        return body + CRC.pack(zlib.crc32(body))
     if mode == "garbage":
         return rng.integers(0, 256, int(rng.integers(1, 200)), dtype=np.uint8).tobytes() + frame
     raise ValueError(f"corrupt_mode must be one of {', '.join(CORRUPT_MODES)} or 'mixed', not {mode!r}")
