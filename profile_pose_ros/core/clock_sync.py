@@ -26,7 +26,7 @@ class ClockMap:
                  refit_s: float = 0.25, slope_after_s: float = 0.5, converged_after_s: float = 2.0,
                  max_drift: float = 0.01) -> None:
         self.window_s, self.recent_s = window_s, recent_s
-        self.jump_s = jump_s  # a sample this far below the fit means the device clock jumped
+        self.jump_s = jump_s  # a sample this far below the fit, or this far back in device time: a clock jump
         self.refit_s = refit_s  # full refits this often (device time); in between, only the offset moves
         self.slope_after_s = slope_after_s  # before this span of samples, assume no drift
         self.converged_after_s = converged_after_s
@@ -59,7 +59,8 @@ class ClockMap:
     def add(self, device_s: float, host_s: float) -> None:
         if self._ref is None:
             self._ref = (device_s, host_s)
-        if self._fit is not None and host_s < self.to_host(device_s) - self.jump_s:
+        if self._fit is not None and (host_s < self.to_host(device_s) - self.jump_s
+                                      or device_s < self._ref[0] + self._samples[-1][0] - self.jump_s):
             self.reset()  # the device restarted or its clock was set: start over
             self._ref = (device_s, host_s)
         d, h = device_s - self._ref[0], host_s - self._ref[1]
@@ -130,9 +131,14 @@ class TriggerMatcher:
 
     def arm(self) -> None:
         """Forget the pairing; the next trigger and the next profile define it."""
+        self.forget()
+        self._armed = True
+
+    def forget(self) -> None:
+        """No pairing until the next arm() (the MCU or the profiler restarted)."""
         self._times.clear()
         self.offset = None
-        self._armed = True
+        self._armed = False
         self._first_seq = self._first_count = None
 
     @property

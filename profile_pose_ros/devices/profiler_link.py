@@ -37,6 +37,7 @@ class LinkCounters:
     frames: int = 0
     published: int = 0
     dropped: int = 0  # gaps in the profiler's trigger count: profiles the device took but we never got
+    #                   (in the stream, or while reconnecting)
     bad_frames: int = 0
     unsynced: int = 0  # published with the receive time because no trigger line matched
     discarded: int = 0  # received while the MCU link starts or counters are paired (trigger time unknown)
@@ -71,7 +72,10 @@ class ProfilerLink:
             self._cond.notify_all()
 
     def request_resync(self, reason: str) -> None:
+        """Forget the pairing now (stamps from it would be wrong) and pair again once the MCU is up."""
         self.log(f"re-pairing trigger counters: {reason}")
+        with self._cond:
+            self.matcher.forget()
         self._resync.set()
 
     def start(self) -> "ProfilerLink":
@@ -98,9 +102,9 @@ class ProfilerLink:
             try:
                 self.source.open()
                 self.counters.connections += 1
-                self._last_count = None
                 backoff = self.settings.backoff_min
-                self._resync.set()
+                if self.matcher.offset is None and not self.matcher.pairing:
+                    self._resync.set()  # a reconnect to the same device keeps its count: no need to re-pair
                 self._stream()
             except (OSError, ProfilerProtocolError, TimeoutError) as exc:
                 self.last_error = f"{self.source.name}: {exc}"
@@ -173,10 +177,12 @@ class ProfilerLink:
         c = self.counters
         c.frames += 1
         self.last_frame_time = time.monotonic()
-        if self._last_count is not None:
+        if self._last_count is not None:  # across reconnects too: frames missed while away are lost
             gap = (frame.trigger_count - self._last_count - 1) & 0xFFFFFFFF
-            if gap < 0x80000000:  # a step back means the device restarted its count: not a loss
+            if gap < 0x80000000:
                 c.dropped += gap
+            elif self.trigger is not None:  # the count went back: the device restarted, pair again
+                self.request_resync("the profiler's trigger count restarted")
         self._last_count = frame.trigger_count
         stamp = self._trigger_time(frame.trigger_count)
         synced = stamp is not None

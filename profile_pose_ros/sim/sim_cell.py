@@ -60,7 +60,7 @@ PARAMETERS = [
     Param("mcu_garbage_fraction", 0.0, "Fault: fraction of triggers preceded by a line of noise.", 0.0, 1.0),
     Param("mcu_baudrate", 1000000, "MCU serial baud rate (line transmission time).", 9600, 4000000, read_only=True),
     Param("mcu_drift_ppm", 300.0, "MCU clock error (ppm).", -10000.0, 10000.0, read_only=True),
-    Param("mcu_micros_start", 0, "MCU micros() at start (to exercise the 32-bit wrap).", 0, 2 ** 32 - 1,
+    Param("mcu_micros_start", 0, "MCU micros() at each boot (to exercise the 32-bit wrap).", 0, 2 ** 32 - 1,
           read_only=True),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
 ]

@@ -92,6 +92,13 @@ class TriggerMcu:
                 self.lines_sent += 1
 
     def _on_connect(self, conn: socket.socket) -> None:
+        # Opening a Nano's USB serial port resets the board (DTR): it boots armed, its clock restarts (from
+        # micros_start, to exercise the 32-bit wrap), and it says READY.
+        with self._lock:
+            self.seq, self.armed = 0, True
+        self.boot_ns = time.monotonic_ns()
+        threading.Thread(target=self._write, args=(f"READY {FIRMWARE_NAME} {FIRMWARE_VERSION}\n".encode(),),
+                         daemon=True).start()
         threading.Thread(target=self._read_loop, args=(conn,), name="mcu-read", daemon=True).start()
 
     def _read_loop(self, conn: socket.socket) -> None:

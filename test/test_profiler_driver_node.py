@@ -1,0 +1,192 @@
+"""profiler_driver against sim_cell's devices (in this process, on loopback), with real rclpy."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+
+from profile_pose_ros.core import render_profile
+from profile_pose_ros.nodes.diagnostics import WARN
+from profile_pose_ros.nodes.messages import points_from_cloud
+from profile_pose_ros.nodes.profiler_driver import ProfilerDriverNode
+from profile_pose_ros.sim.cell import SensorNoise, SimCell
+from profile_pose_ros.sim.motion import ScriptedMotion, pose_from_vector
+from profile_pose_ros.sim.profiler_device import ProfilerDevice
+from profile_pose_ros.sim.trigger_mcu import TriggerMcu
+
+MOTION = dict(sine_amplitude=np.array([2e-3, 1e-3, 1e-3, 2e-3, 1e-3, 2e-3]),
+              sine_frequency=np.array([0.5, 0.7, 0.3, 0.4, 0.6, 0.2]))
+
+
+class Rig:
+    """sim_cell's devices and a profiler_driver node talking to them, and everything it published."""
+
+    def __init__(self, ros, gauge, profiler_port: int = 0, mcu_port: int = 0, **driver_params) -> None:
+        self.ros, self.gauge = ros, gauge
+        self.truth: dict[int, object] = {}  # stamp (ns) -> Truth
+        self.start_cell(profiler_port, mcu_port)
+        params = {"port": self.cell.profiler.port, "serial_url": self.cell.mcu.url, "diagnostics_period": 0.2,
+                  **driver_params}
+        self.driver = ros.add(ProfilerDriverNode(
+            context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]))
+        self.profiles: list[tuple[float, PointCloud2]] = []
+        listener = ros.node("listener")
+        qos = QoSProfile(depth=2000, reliability=ReliabilityPolicy.BEST_EFFORT)
+        listener.create_subscription(PointCloud2, "profile", lambda m: self.profiles.append((time.monotonic(), m)),
+                                     qos)
+
+    def start_cell(self, profiler_port: int = 0, mcu_port: int = 0) -> None:
+        motion = ScriptedMotion(*pose_from_vector([0.0, 0.0, 0.45, np.pi, 0.0, 0.0]), **MOTION)
+        self.cell = SimCell(self.gauge, motion, ProfilerDevice(port=profiler_port), TriggerMcu(port=mcu_port),
+                            SensorNoise(noise_std=0.0), on_truth=self._on_truth).start()
+
+    def _on_truth(self, truth) -> None:
+        self.truth[truth.time_ns] = truth
+
+    @property
+    def link(self):
+        return self.driver.link
+
+    def wait_ready(self, timeout: float = 15.0) -> None:
+        """Streaming, the MCU's clock trained, and the counters ready to be paired by the next trigger."""
+        link = self.link
+        assert self.ros.spin_until(lambda: link.state == "streaming" and link.trigger.ok
+                                   and link.matcher.pairing, timeout), (link.state, link.last_error)
+
+    def run(self, rate_hz: float, triggers: int, timeout: float = 30.0) -> None:
+        self.cell.run_clock(rate_hz, triggers)
+        counters = self.link.counters
+        done = lambda: counters.published + counters.dropped + counters.discarded >= triggers  # noqa: E731
+        assert self.ros.spin_until(done, timeout), (counters, self.cell.profiler.trigger_count)
+        self.ros.spin_until(lambda: len(self.profiles) >= counters.published, 2.0)
+
+    def check_published_against_truth(self, stamp_tolerance: float = 2e-3) -> int:
+        """Every published profile is the one its stamp's trigger produced, point for point."""
+        stamps = np.array(sorted(self.truth))
+        for _, msg in self.profiles:
+            stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            nearest = stamps[np.argmin(np.abs(stamps - stamp))]
+            assert abs(nearest - stamp) < stamp_tolerance * 1e9
+            truth = self.truth[nearest]
+            expected = render_profile(self.gauge, truth.rotation, truth.translation, noise_std=0.0)
+            got = points_from_cloud(msg)
+            np.testing.assert_array_equal(np.isnan(got[:, 1]), np.isnan(expected[:, 1]))
+            ok = np.isfinite(expected[:, 1])
+            np.testing.assert_allclose(got[ok], expected[ok], atol=1e-7)
+        return len(self.profiles)
+
+    def close(self) -> None:
+        self.cell.close()
+
+
+@pytest.fixture
+def rig_factory(ros, gauge):
+    rigs = []
+
+    def make(**kwargs) -> Rig:
+        rigs.append(Rig(ros, gauge, **kwargs))
+        return rigs[-1]
+
+    yield make
+    for rig in rigs:
+        rig.close()
+
+
+def test_streams_every_profile_stamped_with_its_trigger(rig_factory) -> None:
+    rig = rig_factory()
+    rig.wait_ready()
+    rig.run(200.0, 200)
+    c = rig.link.counters
+    assert (c.published, c.dropped, c.bad_frames, c.unsynced) == (200, 0, 0, 0)
+    # paired with the right trigger: the profile is the one rendered at that trigger's pose (it moves)
+    assert rig.check_published_against_truth(stamp_tolerance=1e-3) == 200
+    clock = rig.link.trigger.clock  # PINGs keep feeding it; a few seconds of samples fix the slope
+    assert rig.ros.spin_until(lambda: clock.converged, 5.0)
+    assert abs(clock.drift_ppm - 300.0) < 30.0  # the simulated MCU's resonator
+
+
+def test_drop_count_equals_the_devices(rig_factory) -> None:
+    rig = rig_factory()
+    rig.cell.profiler.faults.drop_fraction = 0.03
+    rig.wait_ready()
+    rig.run(200.0, 400)
+    assert rig.cell.profiler.frames_dropped > 0
+    assert rig.link.counters.dropped == rig.cell.profiler.frames_dropped
+    assert rig.link.counters.published == 400 - rig.cell.profiler.frames_dropped
+
+
+def test_damaged_frames_are_counted_and_never_published(rig_factory) -> None:
+    rig = rig_factory()
+    rig.cell.profiler.faults.corrupt_fraction = 0.1
+    rig.wait_ready()
+    rig.run(150.0, 300)
+    c = rig.link.counters
+    assert rig.cell.profiler.frames_corrupted > 0 and c.bad_frames >= rig.cell.profiler.frames_corrupted
+    assert c.published + c.dropped == 300
+    rig.check_published_against_truth()
+
+
+def test_reconnects_within_a_second_when_the_device_closes(rig_factory) -> None:
+    rig = rig_factory()
+    rig.cell.profiler.faults.close_after_frames = 60
+    rig.wait_ready()
+    rig.run(100.0, 400)
+    c = rig.link.counters
+    assert rig.cell.profiler.closes >= 5 and c.connections >= 6
+    assert c.dropped == rig.cell.profiler.frames_unsent and c.published + c.dropped == 400
+    assert c.resyncs == 1  # a reconnect to the same device keeps the pairing: no trigger pause
+    arrivals = np.array([t for t, _ in rig.profiles])
+    assert np.max(np.diff(arrivals)) < 1.0
+    rig.check_published_against_truth()
+
+
+def test_streams_again_after_the_cell_restarts(rig_factory) -> None:
+    rig = rig_factory()
+    rig.wait_ready()
+    rig.run(100.0, 50)
+    ports = rig.cell.profiler.port, rig.cell.mcu.port
+    rig.cell.close()
+    rig.ros.spin_until(lambda: rig.link.state != "streaming", 5.0)
+    rig.start_cell(*ports)  # a new process would have a new trigger count and MCU: the same here
+    restarted = time.monotonic()
+    rig.wait_ready()
+    before = rig.link.counters.published
+    rig.cell.run_clock(100.0, 100)
+    assert rig.ros.spin_until(lambda: rig.link.counters.published > before, 5.0)
+    first = next(t for t, _ in reversed(rig.profiles) if t >= restarted) if rig.profiles else None
+    assert first is not None and rig.link.counters.connections == 2
+    rig.ros.spin_until(lambda: rig.link.counters.published >= before + 100, 10.0)
+    assert rig.link.counters.unsynced == 0
+    rig.check_published_against_truth()
+
+
+def test_serial_garbage_is_counted_and_stamps_stay_synced(rig_factory) -> None:
+    rig = rig_factory()
+    rig.cell.mcu.faults.garbage_fraction = 0.2
+    rig.wait_ready()
+    rig.run(100.0, 150)
+    assert rig.link.trigger.bad_lines > 0
+    assert rig.link.counters.unsynced == 0 and rig.link.counters.published == 150
+    rig.check_published_against_truth()
+
+
+def test_silent_mcu_is_reported_and_profiles_keep_flowing(rig_factory) -> None:
+    rig = rig_factory()
+    rig.wait_ready()
+    rig.cell.mcu.faults.silent = True
+    rig.cell.run_clock(100.0, 0)
+    diagnostics = []
+    rig.ros.nodes[-1].create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 50)
+    link = rig.link
+    assert rig.ros.spin_until(lambda: link.trigger.state == "silent" and link.counters.unsynced > 20, 10.0)
+    warned = lambda: any(s.level == WARN and "silent" in s.message for a in diagnostics for s in a.status)  # noqa
+    assert rig.ros.spin_until(warned, 5.0)
+    rig.cell.mcu.faults.silent = False
+    synced_before = link.counters.published - link.counters.unsynced
+    assert rig.ros.spin_until(lambda: link.counters.published - link.counters.unsynced > synced_before + 50, 10.0)
+    assert link.state == "streaming"

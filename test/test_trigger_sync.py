@@ -1,0 +1,97 @@
+"""Trigger-MCU lines, the 32-bit clock unwrap, the clock map and trigger/profile pairing (pure code)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from profile_pose_ros.core.clock_sync import ClockMap, TriggerMatcher
+from profile_pose_ros.core.trigger_protocol import (MICROS_WRAP, Ack, McuError, MicrosUnwrapper, Pong, Ready, Trigger,
+                                                    TriggerLineError, format_trigger, parse_line)
+
+
+def test_every_message_parses() -> None:
+    assert parse_line(format_trigger(12, MICROS_WRAP + 5).strip()) == Trigger(12, 5)
+    assert parse_line(b"PONG 99") == Pong(99)
+    assert parse_line(b"OK DISARM") == Ack("DISARM")
+    assert parse_line(b"READY trigger_mcu 1\r") == Ready("trigger_mcu", "1")
+    assert parse_line(b"E unknown command FOO") == McuError("unknown command FOO")
+
+
+@pytest.mark.parametrize("line", [b"", b"T 1", b"T -1 5", b"T 1 4294967296", b"T x 5", b"PONG", b"OK JUMP",
+                                  b"\xff\xfe", b"T 1 2 3", b"hello", b"T " + b"9" * 70])
+def test_garbage_lines_are_rejected(line: bytes) -> None:
+    with pytest.raises(TriggerLineError):
+        parse_line(line)
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.binary(max_size=80))
+def test_fuzz_lines_parse_or_raise_the_documented_error(line: bytes) -> None:
+    try:
+        parse_line(line)
+    except TriggerLineError:
+        pass
+
+
+def test_unwrap_counts_wraps_and_tolerates_small_steps_back() -> None:
+    unwrap = MicrosUnwrapper()
+    values = [MICROS_WRAP - 10, MICROS_WRAP - 5, 3, 1, 20]
+    assert [unwrap(v) for v in values] == [MICROS_WRAP - 10, MICROS_WRAP - 5, MICROS_WRAP + 3, MICROS_WRAP + 1,
+                                           MICROS_WRAP + 20]
+
+
+def simulated_samples(rate_hz: float, seconds: float, drift_ppm: float, seed: int = 0):
+    """(device time, host arrival, true host time): a drifting clock seen through a jittery link."""
+    rng = np.random.default_rng(seed)
+    host = 1.79e9 + np.arange(0, seconds, 1.0 / rate_hz)
+    device = 4000.0 + (host - host[0]) * (1 + drift_ppm * 1e-6)
+    arrival = host + 20e-6 + rng.exponential(150e-6, len(host))  # a floor plus scheduling jitter
+    return device, arrival, host
+
+
+@pytest.mark.parametrize("drift_ppm", [-5000.0, 0.0, 300.0])
+def test_clock_map_follows_drift_to_the_link_floor(drift_ppm: float) -> None:
+    clock = ClockMap()
+    device, arrival, host = simulated_samples(1000.0, 20.0, drift_ppm)
+    errors = []
+    for d, a, h in zip(device, arrival, host):
+        clock.add(d, a)
+        errors.append(clock.to_host(d) - h)
+    errors = np.array(errors)[3000:]  # after convergence
+    assert clock.converged
+    assert abs(clock.drift_ppm - drift_ppm) < 5.0
+    assert np.all(errors > 0) and np.max(errors) < 20e-6 + 30e-6  # the floor plus a few us
+
+
+def test_clock_map_restarts_when_the_device_clock_jumps_back() -> None:
+    clock = ClockMap()
+    device, arrival, _ = simulated_samples(100.0, 3.0, 0.0)
+    for d, a in zip(device, arrival):
+        clock.add(d, a)
+    clock.add(0.5, arrival[-1] + 0.01)  # the MCU rebooted: its clock says 0.5 s
+    assert clock.resets == 1
+    assert abs(clock.to_host(0.5) - (arrival[-1] + 0.01)) < 1e-9
+
+
+def test_matcher_pairs_the_first_trigger_and_profile_after_arming() -> None:
+    matcher = TriggerMatcher()
+    matcher.add_trigger(40, 1.0)  # before arming: forgotten
+    matcher.arm()
+    assert matcher.pairing and matcher.trigger_time(1000) is None
+    matcher.note_profile(1000)  # the profile may come before its line ...
+    matcher.add_trigger(1, 2.0)  # ... the first line after RESET is seq 1
+    matcher.add_trigger(2, 2.012)
+    assert not matcher.pairing and matcher.offset == 999
+    assert matcher.trigger_time(1000) == 2.0 and matcher.trigger_time(1001) == 2.012
+    assert matcher.trigger_time(1002) is None
+
+
+def test_matcher_offset_survives_the_profilers_count_wrapping() -> None:
+    matcher = TriggerMatcher()
+    matcher.arm()
+    matcher.add_trigger(1, 5.0)
+    matcher.note_profile(2 ** 32 - 1)
+    matcher.add_trigger(2, 5.001)
+    assert matcher.trigger_time(0) == 5.001  # the profiler's count wrapped to 0
