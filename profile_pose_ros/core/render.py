@@ -87,9 +87,12 @@ def trace_depth(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, x: 
                 continue
             s = (sign * bound - origins[:, axis]) / direction[axis]
             hit = origins + s[:, None] * direction
-            top = gauge.surface_z(np.clip(hit[:, 0], -half_w, half_w), np.clip(hit[:, 1], -half_l, half_l))
-            ok = (s > 0) & (np.abs(hit[:, other]) <= other_bound) & (hit[:, 2] <= top) & (hit[:, 2] >= gauge.base_z)
-            best = np.where(ok & (s < best), s, best)
+            maybe = np.nonzero((s > 0) & (s < best) & (np.abs(hit[:, other]) <= other_bound)
+                               & (hit[:, 2] >= gauge.base_z))[0]  # few rays reach a wall: test only those
+            if len(maybe):
+                h = hit[maybe]
+                top = gauge.surface_z(np.clip(h[:, 0], -half_w, half_w), np.clip(h[:, 1], -half_l, half_l))
+                best[maybe[h[:, 2] <= top]] = s[maybe[h[:, 2] <= top]]
     best[~np.isfinite(best)] = np.nan
     return best
 
@@ -115,16 +118,17 @@ def shadow_mask(x: np.ndarray, z: np.ndarray, emitter_z: float) -> np.ndarray:
 def render_profile(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, *,
                    noise_std: float = 0.0, rng: np.random.Generator | None = None,
                    spike_fraction: float = 0.0, spike_range: tuple[float, float] = (2e-4, 2e-3),
-                   profiler: ProfilerModel = DEFAULT_PROFILER) -> np.ndarray:
+                   profiler: ProfilerModel = DEFAULT_PROFILER, trace=None) -> np.ndarray:
     """(N, 2) array of [x, z] in metres in frame F, NaN where the profiler reports no point.
 
     Noise is Gaussian on z (the profiler's depth repeatability); spikes replace a fraction of the
-    valid points by z +- U(spike_range), as specular glints do.
+    valid points by z +- U(spike_range), as specular glints do. `trace` replaces trace_depth (sim_cell
+    passes the compiled one of render_fast.py).
     """
     if rng is None:
         rng = np.random.default_rng()
     x = profiler.x
-    z = trace_depth(gauge, rotation, translation, x)
+    z = (trace or trace_depth)(gauge, rotation, translation, x)
     if profiler.occlusion:
         z[shadow_mask(x, z, profiler.emitter_z)] = np.nan
     z[~profiler.in_range(x, z)] = np.nan

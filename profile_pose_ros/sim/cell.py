@@ -16,6 +16,7 @@ import numpy as np
 
 from ..core.gauge import Gauge
 from ..core.render import DEFAULT_PROFILER, ProfilerModel, render_profile
+from ..core.render_fast import trace_depth_fast
 from .motion import MotionSource
 from .profiler_device import ProfilerDevice
 from .trigger_mcu import TriggerMcu
@@ -70,7 +71,8 @@ class SimCell:
             rotation, translation = self.motion.pose_at((mono - self.start_ns) * 1e-9)
             device_us = (mono - self.profiler.boot_ns) // 1000
             points = render_profile(self.gauge, rotation, translation, noise_std=self.noise.noise_std,
-                                    spike_fraction=self.noise.spike_fraction, rng=self.rng, profiler=self.model)
+                                    spike_fraction=self.noise.spike_fraction, rng=self.rng, profiler=self.model,
+                                    trace=trace_depth_fast)
             status = self.profiler.trigger(device_us, self.model.x_start, self.model.x_pitch, points[:, 1],
                                            final=final)
             truth = Truth(self.profiler.trigger_count, seq, wall, rotation, translation, status)

@@ -11,10 +11,12 @@ from __future__ import annotations
 import argparse
 import struct
 import sys
+import time
 
 import numpy as np
 
 from ..core.rotation import rotation_angle
+from . import processes
 from ..nodes.messages import rotation_translation
 from .graph import Graph, free_port
 from .report import run_dir, summary, table, write_json
@@ -29,7 +31,7 @@ def stamp_ns(stamp) -> int:
 
 class CheckRun:
     def __init__(self, graph: Graph, rate_hz: float, seconds: float, noise_std: float, drop_fraction: float,
-                 seed: int = 0) -> None:
+                 seed: int = 0, watch_profiles: bool = False) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
         from rclpy.qos import qos_profile_sensor_data
@@ -50,7 +52,8 @@ class CheckRun:
         self.diagnostics: dict[str, dict] = {}
         node = graph.node
         node.create_subscription(PoseStamped, "/sim/ground_truth", self._on_truth, 5000)
-        node.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data, raw=True)
+        if watch_profiles:  # else the poses' stamps (copied from their profiles) stand for them: less load
+            node.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data, raw=True)
         node.create_subscription(PoseStamped, "pose", self._on_pose, 5000)
         node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
         self.seed = seed
@@ -83,11 +86,16 @@ class CheckRun:
             raise RuntimeError(f"the driver never connected; see {g.log_dir}")
         if not g.spin_until(lambda: self.value("pose_estimator", "gauge", "") != "", 60.0):
             raise RuntimeError("pose_estimator did not come up")
+        cpu_start = {name: processes.cpu_seconds(p.pid) for name, p in g.processes.items()}
+        wall_start = time.monotonic()
         self._start_clock()
         expected = lambda: int(self.value("sim_cell", "triggers")) >= self.triggers  # noqa: E731
         g.spin_until(expected, self.triggers / self.rate_hz + 30.0)
-        last = lambda: len(self.truth) and self.profile_stamps and max(self.profile_stamps) >= max(self.truth)  # noqa
+        last = lambda: len(self.truth) and self.poses and max(p[0] for p in self.poses[-5:]) >= max(self.truth)  # noqa
         g.spin_until(last, 5.0)
+        wall = time.monotonic() - wall_start
+        self.cpu_share = {name: (processes.cpu_seconds(p.pid) - cpu_start[name]) / wall
+                          for name, p in g.processes.items()}
         g.spin_until(lambda: False, 1.2)  # the last diagnostics of every node
         return self._compare()
 
@@ -96,7 +104,7 @@ class CheckRun:
 
     def _compare(self) -> dict:
         truth_stamps = np.array(sorted(self.truth))
-        stamps = np.array(self.profile_stamps, dtype=np.int64)
+        stamps = np.array(self.profile_stamps or [p[0] for p in self.poses], dtype=np.int64)
         idx = np.searchsorted(truth_stamps, stamps)
         lo = truth_stamps[np.clip(idx - 1, 0, len(truth_stamps) - 1)]
         hi = truth_stamps[np.clip(idx, 0, len(truth_stamps) - 1)]
@@ -115,8 +123,11 @@ class CheckRun:
             true_r, true_t = self.truth[best]
             position.append(np.linalg.norm(t - true_t))
             rotation.append(rotation_angle(r, true_r))
+        span = (truth_stamps[-1] - truth_stamps[0]) * 1e-9 if len(truth_stamps) > 1 else float("nan")
         return {
-            "rate_hz": self.rate_hz, "triggers": len(self.truth), "profiles": len(stamps), "poses": len(self.poses),
+            "rate_hz": self.rate_hz, "achieved_rate_hz": (len(truth_stamps) - 1) / span,
+            "cpu_share_of_one_core": self.cpu_share,
+            "sim_late_signals": int(self.value("sim_cell", "late_signals")), "triggers": len(self.truth), "profiles": len(stamps), "poses": len(self.poses),
             "stamp_error_us": summary(np.abs(stamp_error_us)), "stamp_bias_us": float(np.median(stamp_error_us)),
             "position_error_um": summary(np.array(position) * 1e6),
             "rotation_error_urad": summary(np.array(rotation) * 1e6), "poses_without_truth": unmatched,
@@ -139,6 +150,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--noise", type=float, default=0.0, help="profile depth noise (m); 0 shows exactness")
     parser.add_argument("--drop", type=float, default=0.0, help="fraction of frames sim_cell drops")
+    parser.add_argument("--watch-profiles", action="store_true",
+                        help="also subscribe to `profile` (else stamps are checked on the poses, which copy them)")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "profiler-check")
@@ -147,7 +160,7 @@ def main(argv=None) -> int:
         print(f"{rate:g} Hz for {args.seconds:g} s ...", flush=True)
         graph = Graph(out / f"{rate:g}Hz", client_name="profiler_check")
         try:
-            r = CheckRun(graph, rate, args.seconds, args.noise, args.drop, seed=k).run()
+            r = CheckRun(graph, rate, args.seconds, args.noise, args.drop, seed=k, watch_profiles=args.watch_profiles).run()
         finally:
             graph.close()
         results.append(r)
