@@ -22,6 +22,18 @@ from .profiler_device import ProfilerDevice
 from .trigger_mcu import TriggerMcu
 
 
+def paired_clocks(tolerance_ns: int = 20_000, tries: int = 5) -> tuple[int, int]:
+    """(wall, monotonic) read at the same instant: the truth's stamp and the MCU's clock come from one
+    moment, even if this thread is preempted between two clock reads (retry until they bracket tightly)."""
+    for _ in range(tries):
+        before = time.time_ns()
+        mono = time.monotonic_ns()
+        after = time.time_ns()
+        if after - before <= tolerance_ns:
+            break
+    return (before + after) // 2, mono
+
+
 @dataclass(frozen=True)
 class Truth:
     trigger_count: int  # the profiler's count for this trigger
@@ -62,8 +74,7 @@ class SimCell:
     def robot_signal(self, final: bool = False) -> Truth | None:
         """One per-cycle output edge of the robot controller. Thread-safe; returns the truth if it fired."""
         with self._lock:
-            mono = time.monotonic_ns()
-            wall = time.time_ns()
+            wall, mono = paired_clocks()
             self.signals += 1
             seq = self.mcu.robot_signal(mono)
             if seq is None:
