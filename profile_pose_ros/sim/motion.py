@@ -66,3 +66,17 @@ def steps_from_lists(times: list[float], axes: list[str], sizes: list[float]) ->
             raise ValueError(f"step axis '{axis}' is not one of {', '.join(AXES)}")
         steps.append(Step(float(t), AXES.index(axis), float(size)))
     return steps
+
+
+class ArmMotion:
+    """The profiler carried by the simulated arm: the nominal pose moved by the arm's offsets, which are
+    in the robot base frame (gauge_in_base gives the base's axes in G) and act at the profiler origin."""
+
+    def __init__(self, rotation: np.ndarray, translation: np.ndarray, arm, gauge_in_base: np.ndarray) -> None:
+        self.rotation, self.translation, self.arm = rotation, translation, arm
+        self.r_gb = so3_exp(np.asarray(gauge_in_base[3:], dtype=float)).T
+
+    def pose_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        offset = self.arm.position
+        turn = self.r_gb @ so3_exp(offset[3:]) @ self.r_gb.T
+        return turn @ self.rotation, self.translation + self.r_gb @ offset[:3]

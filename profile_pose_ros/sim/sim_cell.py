@@ -20,7 +20,9 @@ from ..nodes.parameters import Param, declare_all
 from ..nodes.run import run_node
 from ..resources import DEFAULT_GAUGE, config_path
 from .cell import SensorNoise, SimCell, Truth
-from .motion import ScriptedMotion, pose_from_vector, steps_from_lists
+from .arm import Arm, ArmModel
+from .motion import ArmMotion, ScriptedMotion, pose_from_vector, steps_from_lists
+from .robot_controller import TICK_S, ControllerFaults, RobotController
 from .profiler_device import CORRUPT_MODES, ProfilerDevice, ProfilerFaults
 from .trigger_mcu import McuFaults, TriggerMcu
 
@@ -62,12 +64,28 @@ PARAMETERS = [
     Param("mcu_drift_ppm", 300.0, "MCU clock error (ppm).", -10000.0, 10000.0, read_only=True),
     Param("mcu_micros_start", 0, "MCU micros() at each boot (to exercise the 32-bit wrap).", 0, 2 ** 32 - 1,
           read_only=True),
+    Param("robot_enabled", True, "Simulate the robot controller (MotoPlus protocol on robot_port); its period "
+          "then triggers the profiler and trigger_rate is not used.", read_only=True),
+    Param("robot_port", 11000, "Robot controller port (0: any free port).", 0, 65535, read_only=True),
+    Param("control_period", 0.012, "Controller period (s): 0.012 (83.3 Hz) or 0.004 (250 Hz).", 0.004, 0.1,
+          read_only=True),
+    Param("arm_delay", 0.01061, "Command-to-motion delay (s): one 4 ms clock plus the paper's mean profile transfer "
+          "time.", 0.0, 0.1, read_only=True),
+    Param("gauge_in_base", [0.0] * 6, "Pose of the gauge in the robot base frame (x y z m, rotation vector rad).",
+          read_only=True),
+    Param("program_offset", [0.0] * 6, "The robot program's target offset from the start pose (m, rad); "
+          "setting it is a step command."),
+    Param("state_delay_ms", 0.0, "Fault: every STATE this much late (ms).", 0.0, 10000.0),
+    Param("state_drop_fraction", 0.0, "Fault: fraction of STATE frames not sent.", 0.0, 1.0),
+    Param("disconnect_after_periods", 0, "Fault: end the controller session after N armed periods (0: never).",
+          0, 2 ** 31 - 1),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
 ]
 
 _FAULTS = {"drop_fraction", "delay_ms", "corrupt_fraction", "corrupt_mode", "close_after_frames",
            "mcu_silent", "mcu_garbage_fraction", "noise_std", "spike_fraction"}
 _CLOCK = {"trigger_rate", "max_triggers"}
+_ROBOT = {"program_offset", "state_delay_ms", "state_drop_fraction", "disconnect_after_periods"}
 
 
 def motion_from(values: dict) -> ScriptedMotion:
@@ -92,19 +110,32 @@ class SimCellNode(Node):
         profiler = ProfilerDevice(v["host"], v["profiler_port"], faults=ProfilerFaults(), seed=v["seed"])
         mcu = TriggerMcu(v["host"], v["mcu_port"], baudrate=v["mcu_baudrate"], drift_ppm=v["mcu_drift_ppm"],
                          micros_start=v["mcu_micros_start"], faults=McuFaults(), seed=v["seed"] + 1)
+        self.robot = None
+        if v["robot_enabled"]:
+            arm = Arm(ArmModel(delay_s=v["arm_delay"]))
+            motion = ArmMotion(motion.rotation, motion.translation, arm, np.array(v["gauge_in_base"], float))
         self.cell = SimCell(self.gauge, motion, profiler, mcu, SensorNoise(), DEFAULT_PROFILER,
                             on_truth=self._publish_truth, seed=v["seed"] + 2)
+        if v["robot_enabled"]:
+            ticks = int(round(v["control_period"] / TICK_S))
+            if abs(ticks * TICK_S - v["control_period"]) > 1e-9:
+                raise ValueError(f"control_period {v['control_period']} is not a multiple of the 4 ms clock")
+            self.robot = RobotController(arm, self.cell.robot_signal, v["host"], v["robot_port"], ticks,
+                                         ControllerFaults(), seed=v["seed"] + 3)
         self._apply_faults(v)
         self.truth_pub = self.create_publisher(PoseStamped, "/sim/ground_truth", 100)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.cell.start()
-        if v["trigger_rate"] > 0:
+        if self.robot is not None:
+            self.robot.start()
+        elif v["trigger_rate"] > 0:
             self.cell.run_clock(v["trigger_rate"], v["max_triggers"])
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
-        self.get_logger().info(
-            f"profiler on tcp://{profiler.server.host}:{profiler.port}, trigger MCU on {mcu.url}, "
-            f"gauge '{self.gauge.name}', {v['trigger_rate']:.3f} Hz")
+        clock = (f"robot controller on tcp://{v['host']}:{self.robot.port}, {1 / v['control_period']:.1f} Hz"
+                 if self.robot is not None else f"internal trigger clock {v['trigger_rate']:.3f} Hz")
+        self.get_logger().info(f"profiler on tcp://{profiler.server.host}:{profiler.port}, trigger MCU on {mcu.url}, "
+                               f"{clock}, gauge '{self.gauge.name}'")
 
     def _apply_faults(self, v: dict) -> None:
         f = self.cell.profiler.faults
@@ -114,6 +145,13 @@ class SimCellNode(Node):
         m = self.cell.mcu.faults
         m.silent, m.garbage_fraction = v["mcu_silent"], v["mcu_garbage_fraction"]
         self.cell.noise.noise_std, self.cell.noise.spike_fraction = v["noise_std"], v["spike_fraction"]
+        if self.robot is not None:
+            r = self.robot.faults
+            r.state_delay_s, r.state_drop_fraction = v["state_delay_ms"] * 1e-3, v["state_drop_fraction"]
+            r.disconnect_after_periods = v["disconnect_after_periods"]
+            if len(v["program_offset"]) != 6:
+                raise ValueError("program_offset needs six values")
+            self.robot.program = np.array(v["program_offset"], dtype=float)
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         values = dict(self.values)
@@ -121,11 +159,14 @@ class SimCellNode(Node):
         if values["corrupt_mode"] not in CORRUPT_MODES + ("mixed",):
             return SetParametersResult(successful=False, reason=f"unknown corrupt_mode {values['corrupt_mode']!r}")
         names = {p.name for p in parameters}
-        if names - _FAULTS - _CLOCK:
-            return SetParametersResult(successful=False, reason="only faults, noise and the clock change at run time")
+        if names - _FAULTS - _CLOCK - _ROBOT:
+            return SetParametersResult(successful=False,
+                                       reason="only faults, noise, the clock and the program change at run time")
+        if len(values["program_offset"]) != 6:
+            return SetParametersResult(successful=False, reason="program_offset needs six values")
         self.values = values
         self._apply_faults(values)
-        if names & _CLOCK:
+        if names & _CLOCK and self.robot is None:
             self.cell.run_clock(values["trigger_rate"], values["max_triggers"])
         return SetParametersResult(successful=True)
 
@@ -144,10 +185,18 @@ class SimCellNode(Node):
                   "profiler_connections": p.server.connections, "profiler_closes": p.closes,
                   "mcu_connections": m.server.connections, "mcu_lines": m.lines_sent,
                   "profiler_port": p.port, "mcu_url": m.url, **faults}
+        if self.robot is not None:
+            r = self.robot
+            values.update({"robot_port": r.port, "robot_armed": r.session is not None, "robot_states": r.states_sent,
+                           "robot_faults": r.faults_raised, "robot_last_fault": r.last_fault[1] or "none",
+                           "robot_clamped": r.clamped,
+                           "arm_offset_um": [round(x * 1e6, 1) for x in r.arm.position[:3]]})
         self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: cell",
                                                       "sim_cell", level, message, values))
 
     def destroy_node(self) -> None:
+        if self.robot is not None:
+            self.robot.close()
         self.cell.close()
         super().destroy_node()
 

@@ -14,6 +14,8 @@ MODULES = {
     "sim_cell": "profile_pose_ros.sim.sim_cell",
     "profiler_driver": "profile_pose_ros.nodes.profiler_driver",
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator",
+    "pd_compensator": "profile_pose_ros.nodes.pd_compensator",
+    "motoplus_bridge": "profile_pose_ros.nodes.motoplus_bridge",
 }
 
 

@@ -41,6 +41,7 @@ class CheckRun:
         self.triggers = int(round(rate_hz * seconds))
         profiler_port, mcu_port = free_port(), free_port()
         graph.start("sim_cell", {"profiler_port": profiler_port, "mcu_port": mcu_port, "trigger_rate": 0.0,
+                                 "robot_enabled": False,
                                  "noise_std": noise_std, "drop_fraction": drop_fraction, "seed": seed,
                                  "diagnostics_period": 0.5, **SINES})
         graph.start("profiler_driver", {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}",

@@ -1,0 +1,197 @@
+"""The bridge's side of the MotoPlus protocol without ROS: a socket thread paced by the controller.
+
+Disarmed until arm() is called; then HELLO, and for every STATE exactly one CORRECTION with the
+increment `increment()` returns (clamped here as well as on the controller). Any fault, protocol error
+or disconnect disarms it, and only another arm() re-arms: it never moves the robot on its own after a
+fault. It reconnects with back-off; stop() sends STOP.
+"""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..core import motoplus_protocol as mp
+
+DISCONNECTED, CONNECTED, ARMING, ARMED = "disconnected", "connected", "arming", "armed"
+
+
+@dataclass(frozen=True)
+class SessionLimits:
+    period_s: float = 0.012
+    max_step: tuple[float, ...] = (2e-4, 2e-4, 2e-4, 1e-3, 1e-3, 1e-3)  # per cycle, m and rad
+    max_offset: tuple[float, ...] = (5e-3, 5e-3, 5e-3, 2e-2, 2e-2, 2e-2)  # total, m and rad
+    watchdog_s: float = 0.5
+    frame: int = mp.FRAME_BASE
+
+    def hello(self) -> mp.Hello:
+        return mp.Hello(int(round(self.period_s * 1e6)), mp.metres_to_units(self.max_step),
+                        mp.metres_to_units(self.max_offset), int(round(self.watchdog_s * 1e3)), self.frame)
+
+
+@dataclass
+class BridgeCounters:
+    states: int = 0
+    corrections: int = 0
+    zero_corrections: int = 0  # sent because the correction was stale or missing
+    clamped: int = 0
+    faults: int = 0
+    connections: int = 0
+
+
+class MotoPlusClient:
+    def __init__(self, host: str, port: int, limits: SessionLimits,
+                 increment: Callable[[], np.ndarray | None], on_state: Callable[[mp.State, float], None],
+                 log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0) -> None:
+        self.host, self.port, self.limits = host, port, limits
+        self.increment, self.on_state, self.log = increment, on_state, log
+        self.backoff_min, self.backoff_max = backoff_min, backoff_max
+        self.state = DISCONNECTED
+        self.last_error = ""
+        self.last_fault: tuple[int, str] = (0, "")
+        self.last_state: mp.State | None = None
+        self.last_state_time = 0.0
+        self.counters = BridgeCounters()
+        self.sent_log: list[tuple[float, tuple[int, ...]]] = []  # (host time, increment) of the last sends
+        self._seq = 0
+        self._peer_seq = 0
+        self._sock: socket.socket | None = None
+        self._send_lock = threading.Lock()
+        self._arm_requested = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="motoplus-client", daemon=True)
+
+    def start(self) -> "MotoPlusClient":
+        self._thread.start()
+        return self
+
+    @property
+    def armed(self) -> bool:
+        return self.state == ARMED
+
+    def arm(self) -> None:
+        """Ask for a session; sends HELLO now if connected, else on the next connection."""
+        self._arm_requested.set()
+
+    def disarm(self, reason: str) -> None:
+        """Send STOP and hold still until arm() is called again."""
+        self._arm_requested.clear()
+        if self.state in (ARMED, ARMING):
+            self._send(mp.Stop())
+            self.state = CONNECTED
+        self.log(f"disarmed: {reason}")
+
+    def stop(self) -> None:
+        """STOP to the controller, then close (every shutdown path ends here)."""
+        self._arm_requested.clear()
+        self._send(mp.Stop())
+        self._stop.set()
+        self._close()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+
+    # ---------------------------------------------------------------- socket thread
+    def _run(self) -> None:
+        backoff = self.backoff_min
+        while not self._stop.is_set():
+            try:
+                sock = socket.create_connection((self.host, self.port), timeout=1.0)
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                self._sock = sock
+                self.counters.connections += 1
+                self.state = CONNECTED
+                backoff = self.backoff_min
+                self._session(sock)
+            except (OSError, mp.MotoPlusProtocolError) as exc:
+                self.last_error = f"tcp://{self.host}:{self.port}: {exc}"
+            if self.state in (ARMED, ARMING):  # a session lost without STOP is a fault: re-arm by hand
+                self._arm_requested.clear()
+                self.counters.faults += 1
+                self.log(f"session lost ({self.last_error}); disarmed until ~/start")
+            self._close()
+            self.state = DISCONNECTED
+            if self._stop.is_set():
+                return
+            self._stop.wait(backoff)
+            backoff = min(2 * backoff, self.backoff_max)
+
+    def _session(self, sock: socket.socket) -> None:
+        reader = mp.FrameReader()
+        sock.settimeout(0.05)
+        while not self._stop.is_set():
+            if self._arm_requested.is_set() and self.state == CONNECTED:
+                self.state = ARMING
+                self._send(self.limits.hello())
+            try:
+                data = sock.recv(4096)
+            except (TimeoutError, socket.timeout):
+                if self.state == ARMED and time.monotonic() - self.last_state_time > self.limits.watchdog_s:
+                    raise ConnectionError(f"no STATE for {self.limits.watchdog_s} s")
+                continue
+            if not data:
+                raise ConnectionError("the controller closed the connection")
+            for frame in reader.feed(data):
+                self._peer_seq = frame.seq
+                self._handle(frame)
+
+    def _handle(self, frame: mp.Frame) -> None:
+        body = frame.body
+        now = time.monotonic()
+        if isinstance(body, mp.State):
+            self.counters.states += 1
+            self.last_state, self.last_state_time = body, now
+            self.on_state(body, time.time())
+            if self.state == ARMING and body.status & mp.ARMED:
+                self.state = ARMED
+                return  # the arming STATE: the first CORRECTION answers the next one
+            if self.state == ARMED:
+                self._correct()
+        elif isinstance(body, mp.Fault):
+            self.last_fault = (body.code, body.text)
+            self.last_error = f"controller FAULT {body.code}: {body.text}"
+            self.counters.faults += 1
+            self._arm_requested.clear()
+            self.state = CONNECTED
+            self.log(self.last_error)
+        elif isinstance(body, mp.Stop):
+            self._arm_requested.clear()
+            self.state = CONNECTED
+
+    def _correct(self) -> None:
+        step = self.increment()
+        if step is None:
+            units = (0,) * 6
+            self.counters.zero_corrections += 1
+        else:
+            units, cut = mp.clamp(mp.metres_to_units(step), mp.metres_to_units(self.limits.max_step))
+            self.counters.clamped += int(cut)
+        self._send(mp.Correction(units, self.limits.frame))
+        self.counters.corrections += 1
+        self.sent_log.append((time.time(), units))
+        del self.sent_log[:-1000]
+
+    def _send(self, body: mp.Body) -> bool:
+        with self._send_lock:
+            sock = self._sock
+            if sock is None:
+                return False
+            self._seq += 1
+            try:
+                sock.sendall(mp.encode(mp.Frame(self._seq, self._peer_seq, body)))
+                return True
+            except OSError as exc:
+                self.last_error = f"send: {exc}"
+                return False
+
+    def _close(self) -> None:
+        with self._send_lock:
+            sock, self._sock = self._sock, None
+        if sock is not None:
+            try:
+                sock.close()
+            except OSError:
+                pass

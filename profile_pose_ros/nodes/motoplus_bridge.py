@@ -1,0 +1,168 @@
+"""motoplus_bridge: `correction` (TwistStamped, base frame) -> one clamped Cartesian increment per
+controller period over the MotoPlus protocol (docs/motoplus_protocol.md); `robot_state` and /diagnostics
+out; services ~/start (arm) and ~/stop (STOP, disarm).
+
+Thin glue around devices.motoplus_client.MotoPlusClient (its own socket thread, paced by the
+controller's STATE). A correction older than `max_age` (by its stamp: the profile's trigger time) moves
+nothing; a fault or a lost session disarms until ~/start; STOP goes out on every shutdown path.
+"""
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from rclpy.node import Node
+from rclpy.time import Time
+from std_srvs.srv import Trigger
+
+from ..core import motoplus_protocol as mp
+from ..core.rotation import so3_exp
+from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
+from .diagnostics import ERROR, OK, WARN, diagnostic_array
+from .messages import fill_pose
+from .parameters import Param, declare_all
+from .run import run_node
+
+NODE_NAME = "motoplus_bridge"
+FRAMES = {"base": mp.FRAME_BASE, "robot": mp.FRAME_ROBOT, "tool": mp.FRAME_TOOL, "user": mp.FRAME_USER}
+
+PARAMETERS = [
+    Param("host", "127.0.0.1", "Robot controller (MotoPlus application) address.", read_only=True),
+    Param("port", 11000, "Robot controller port.", 1, 65535, read_only=True),
+    Param("period", 0.012, "Controller period (s): 0.012 (83.3 Hz) or 0.004 (250 Hz); must match the controller.",
+          0.004, 0.1, read_only=True),
+    Param("max_step", [2e-4, 2e-4, 2e-4, 1e-3, 1e-3, 1e-3],
+          "Per-cycle increment limit per axis x y z (m) rx ry rz (rad).", read_only=True),
+    Param("max_offset", [5e-3, 5e-3, 5e-3, 2e-2, 2e-2, 2e-2],
+          "Bound on the total offset from the start pose per axis (m, rad).", read_only=True),
+    Param("watchdog", 0.5, "The controller ends the session after this long without a frame (s).", 0.05, 5.0,
+          read_only=True),
+    Param("max_age", 0.05, "A correction older than this (by its stamp) moves nothing (s).", 0.001, 1.0),
+    Param("frame", "base", "Cartesian frame of the increments: base, robot, tool or user.", read_only=True),
+    Param("base_frame", "base", "frame_id of robot_state."),
+    Param("arm_on_start", False, "Arm (send HELLO) as soon as connected, without ~/start."),
+    Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
+]
+
+
+def limits_from(v: dict) -> SessionLimits:
+    if v["frame"] not in FRAMES:
+        raise ValueError(f"frame must be one of {', '.join(FRAMES)}, not {v['frame']!r}")
+    for name in ("max_step", "max_offset"):
+        if len(v[name]) != 6 or min(v[name]) <= 0:
+            raise ValueError(f"{name} needs six positive values (x y z rx ry rz)")
+    return SessionLimits(v["period"], tuple(v["max_step"]), tuple(v["max_offset"]), v["watchdog"], FRAMES[v["frame"]])
+
+
+class MotoPlusBridgeNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        v = self.values = declare_all(self, PARAMETERS)
+        self.limits = limits_from(v)
+        self._lock = threading.Lock()
+        self._velocities: list[np.ndarray] = []  # corrections received since the last increment
+        self._latest: tuple[float, np.ndarray] | None = None  # (stamp s, velocity)
+        self.stale_periods = 0
+        self.state_pub = self.create_publisher(PoseStamped, "robot_state", 10)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(TwistStamped, "correction", self._on_correction, 10)
+        self.create_service(Trigger, "~/start", self._on_start)
+        self.create_service(Trigger, "~/stop", self._on_stop)
+        logger = self.get_logger()
+        self.client = MotoPlusClient(v["host"], v["port"], self.limits, self._increment, self._on_state,
+                                     log=lambda text: logger.warn(text, throttle_duration_sec=1.0))
+        if v["arm_on_start"]:
+            self.client.arm()
+        self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
+        self.client.start()
+        logger.info(f"robot controller tcp://{v['host']}:{v['port']}, period {v['period'] * 1e3:.1f} ms; "
+                    f"{'arming' if v['arm_on_start'] else 'disarmed until ~/start'}")
+
+    # ---------------------------------------------------------------- corrections
+    def _on_correction(self, msg: TwistStamped) -> None:
+        velocity = np.array([msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z,
+                             msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z])
+        if not np.all(np.isfinite(velocity)):
+            self.get_logger().error("correction with NaN or inf ignored", throttle_duration_sec=1.0)
+            return
+        stamp = Time.from_msg(msg.header.stamp).nanoseconds * 1e-9
+        with self._lock:
+            self._velocities.append(velocity)
+            self._latest = (stamp, velocity)
+
+    def _increment(self) -> np.ndarray | None:
+        """This period's move (socket thread): the mean velocity commanded during the period times the
+        period, or None (a zero increment) when the newest correction is older than max_age."""
+        with self._lock:
+            received, self._velocities = self._velocities, []
+            latest = self._latest
+        if latest is None or time.time() - latest[0] > self.values["max_age"]:
+            self.stale_periods += 1
+            return None
+        velocity = np.mean(received, axis=0) if received else latest[1]
+        return velocity * self.limits.period_s
+
+    def _on_state(self, state: mp.State, host_time: float) -> None:
+        pose = np.array(mp.units_to_metres(state.pose))
+        msg = PoseStamped()
+        msg.header.stamp = Time(nanoseconds=int(host_time * 1e9)).to_msg()
+        msg.header.frame_id = self.values["base_frame"]
+        fill_pose(msg.pose, so3_exp(pose[3:]), pose[:3])
+        self.state_pub.publish(msg)
+
+    # ---------------------------------------------------------------- services
+    def _on_start(self, _request, response):
+        self.client.arm()
+        response.success = True
+        response.message = f"arming (state: {self.client.state})"
+        return response
+
+    def _on_stop(self, _request, response):
+        self.client.disarm("~/stop")
+        response.success = True
+        response.message = "STOP sent; disarmed"
+        return response
+
+    # ---------------------------------------------------------------- diagnostics
+    def _publish_diagnostics(self) -> None:
+        c = self.client
+        if c.state == ARMED:
+            level, message = OK, "armed, correcting"
+            if self.stale_periods:
+                level, message = WARN, f"armed; {self.stale_periods} periods with a stale correction (zero sent)"
+        elif c.last_fault[0]:
+            level, message = ERROR, f"{c.state}; last fault {c.last_fault[0]}: {c.last_fault[1]}"
+        else:
+            level, message = WARN, f"{c.state}: not moving the robot ({c.last_error or 'not armed'})"
+        values = {"state": c.state, "states": c.counters.states, "corrections": c.counters.corrections,
+                  "zero_corrections": c.counters.zero_corrections, "clamped": c.counters.clamped,
+                  "faults": c.counters.faults, "connections": c.counters.connections,
+                  "last_error": c.last_error or "none", "stale_periods": self.stale_periods}
+        if c.last_state is not None:
+            values.update({"controller_status": c.last_state.status, "echoed_seq": c.last_state.echoed_seq,
+                           "total_offset_um": list(c.last_state.offset[:3])})
+        self.stale_periods = 0
+        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: robot",
+                                                      f"tcp://{c.host}:{c.port}", level, message, values))
+
+    def destroy_node(self) -> None:
+        self.client.stop()  # STOP first, on every shutdown path
+        super().destroy_node()
+
+
+def _interrupt(*_) -> None:
+    raise KeyboardInterrupt
+
+
+def main(args=None) -> int:
+    signal.signal(signal.SIGTERM, _interrupt)  # a process manager's stop takes Ctrl-C's path: STOP, then exit
+    return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,155 @@
+"""pd_compensator: `pose_with_covariance` and `reference_pose` (F in G) -> `correction` (TwistStamped, robot
+base frame): a PD law on the Kalman-filtered pose error (core/compensator.py).
+
+A stale pose (older than max_pose_age by its stamp), a missing one (the estimator rejected the profile)
+or no reference gives a zero correction and a diagnostic. Gains change at run time, validated.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.time import Time
+
+from ..core.compensator import AxisKalman, Gains, Mounting, covariance_in_base, pd_velocity, pose_vector_in_base
+from .diagnostics import OK, WARN, diagnostic_array
+from .messages import rotation_translation
+from .parameters import Param, declare_all
+from .run import run_node
+
+NODE_NAME = "pd_compensator"
+
+PARAMETERS = [
+    Param("kp", [15.0, 6.0, 15.0, 5.0, 5.0, 5.0], "Proportional gain per axis x y z rx ry rz (1/s): velocity "
+          "commanded per unit of pose error."),
+    Param("kd", [0.2, -0.3, 0.1, 0.0, 0.0, 0.0], "Derivative gain per axis (dimensionless): velocity commanded "
+          "per unit of the arm's filtered velocity, subtracted."),
+    Param("max_speed", [0.05, 0.05, 0.05, 0.2, 0.2, 0.2], "Correction speed limit per axis (m/s, rad/s)."),
+    Param("gauge_in_base", [0.0] * 6, "Pose of the gauge frame G in the robot base frame: x y z (m), rotation "
+          "vector (rad). Corrections act at the profiler origin: set the controller's tool to the profiler "
+          "frame.", read_only=True),
+    Param("acceleration_psd", [20.0, 20.0, 20.0, 2.0, 2.0, 2.0], "Kalman filter process noise per axis "
+          "((m/s^2)^2/Hz): larger follows faster motion, smaller averages more noise.", read_only=True),
+    Param("use_covariance", True, "Weight each pose by its published covariance (else by measurement_std)."),
+    Param("measurement_std", 5e-5, "Pose noise assumed when use_covariance is false (m; rad the same number).",
+          1e-7, 1e-2),
+    Param("max_pose_age", 0.05, "A pose older than this (by its stamp) is stale: zero correction (s).", 0.001, 1.0),
+    Param("base_frame", "base", "frame_id of the corrections."),
+    Param("watchdog_rate", 100.0, "How often staleness is checked and a zero correction sent (Hz).", 1.0, 1000.0,
+          read_only=True),
+    Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
+]
+
+_GAINS = ("kp", "kd", "max_speed")
+
+
+def gains_from(values: dict) -> Gains:
+    gains = Gains(tuple(values["kp"]), tuple(values["kd"]), tuple(values["max_speed"]))
+    gains.check()
+    return gains
+
+
+class PdCompensatorNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        v = self.values = declare_all(self, PARAMETERS)
+        self.gains = gains_from(v)
+        if len(v["gauge_in_base"]) != 6 or len(v["acceleration_psd"]) != 6:
+            raise ValueError("gauge_in_base and acceleration_psd need six values")
+        self.mounting = Mounting(tuple(v["gauge_in_base"]))
+        self.filter = AxisKalman(np.array(v["acceleration_psd"]))
+        self.anchor: np.ndarray | None = None  # base-frame rotation all rotation vectors are taken from
+        self.reference: np.ndarray | None = None  # 6-vector in base coordinates
+        self.last_pose_stamp = 0.0
+        self.poses = self.corrections = self.stale_zeros = 0
+        self.last_error = np.zeros(6)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.correction_pub = self.create_publisher(TwistStamped, "correction", 10)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose, 10)
+        self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
+        self.create_timer(1.0 / v["watchdog_rate"], self._watchdog)
+        self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
+
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        values = dict(self.values)
+        values.update({p.name: p.value for p in parameters})
+        try:
+            gains = gains_from(values)
+        except (ValueError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self.values, self.gains = values, gains
+        return SetParametersResult(successful=True)
+
+    # ---------------------------------------------------------------- inputs
+    def _vector(self, pose) -> np.ndarray:
+        rotation, translation = rotation_translation(pose)
+        if self.anchor is None:
+            self.anchor = self.mounting.rotation @ rotation
+        return pose_vector_in_base(rotation, translation, self.mounting, self.anchor)
+
+    def _on_reference(self, msg: PoseStamped) -> None:
+        self.reference = self._vector(msg.pose)
+
+    def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
+        stamp = Time.from_msg(msg.header.stamp).nanoseconds * 1e-9
+        if time.time() - stamp > self.values["max_pose_age"]:
+            return  # stale on arrival: the watchdog sends zeros
+        z = self._vector(msg.pose.pose)
+        if self.values["use_covariance"]:
+            variance = covariance_in_base(np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6), self.mounting)
+        else:
+            variance = np.full(6, self.values["measurement_std"] ** 2)
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(variance))):
+            self.get_logger().error("pose with NaN ignored", throttle_duration_sec=1.0)
+            return
+        self.filter.update(stamp, z, variance)
+        self.last_pose_stamp = stamp
+        self.poses += 1
+        if self.reference is None:
+            return  # no target yet: the watchdog keeps the output at zero
+        self.last_error = self.reference - self.filter.position
+        self._publish(pd_velocity(self.last_error, self.filter.velocity, self.gains), msg.header.stamp)
+        self.corrections += 1
+
+    def _publish(self, velocity: np.ndarray, stamp) -> None:
+        msg = TwistStamped()
+        msg.header.stamp = stamp
+        msg.header.frame_id = self.values["base_frame"]
+        msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z = (float(x) for x in velocity[:3])
+        msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z = (float(x) for x in velocity[3:])
+        self.correction_pub.publish(msg)
+
+    def _watchdog(self) -> None:
+        if self.reference is None or time.time() - self.last_pose_stamp > self.values["max_pose_age"]:
+            self.filter.reset()  # the next fresh pose starts the filter again, not from old motion
+            self._publish(np.zeros(6), self.get_clock().now().to_msg())
+            self.stale_zeros += 1
+
+    def _publish_diagnostics(self) -> None:
+        age = time.time() - self.last_pose_stamp if self.last_pose_stamp else float("inf")
+        if self.reference is None:
+            level, message = WARN, "no reference_pose yet: correction zero"
+        elif age > self.values["max_pose_age"]:
+            level, message = WARN, f"pose stale ({age:.3f} s old): correction zero"
+        else:
+            level, message = OK, "correcting"
+        values = {"poses": self.poses, "corrections": self.corrections, "zero_corrections": self.stale_zeros,
+                  "pose_age_ms": age * 1e3, "error_um": [round(e * 1e6, 1) for e in self.last_error[:3]],
+                  "kp": list(self.gains.kp), "kd": list(self.gains.kd)}
+        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(),
+                                                      f"{self.get_name()}: compensator", "pd_compensator",
+                                                      level, message, values))
+
+
+def main(args=None) -> int:
+    return run_node(PdCompensatorNode, NODE_NAME, args, startup_errors=(ValueError,))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,307 @@
+"""profile_pose_experiment: the paper's IV-C protocol (Table IV, Figs. 5 and 6) on the simulated cell,
+through the full ROS graph: sim_cell -> profiler_driver -> pose_estimator -> pd_compensator ->
+motoplus_bridge -> sim_cell's robot controller, each its own process.
+
+Open loop: the robot program steps (sim_cell's program_offset) and the arm rings on its own. Closed loop:
+the bridge is armed and the reference pose steps; the compensator drives the arm there from the
+estimated poses. Metrics come from the *estimated* pose (as in the paper; the truth is reported beside
+it): maximum overshoot Mp (python-control's step_info against the commanded step), the damping ratio
+from it, and the peak of the amplitude spectrum between 5 and 20 Hz (Mf, um).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from ..nodes.messages import pose_stamped, rotation_translation
+from .graph import Graph, free_port
+from .report import run_dir, table, write_json
+
+AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0), "xyz": (1.0, 1.0, 1.0)}
+PAPER_IMPROVEMENT = {  # Table IV: (Mp, zeta, Mf) improvement in % at 1 mm and 2 mm
+    "x": {1: (54.17, 10.53, 38.07), 2: (36.83, 5.41, 75.75)},
+    "y": {1: (68.87, 71.11, 63.05), 2: (96.30, 65.43, 87.20)},
+    "z": {1: (78.83, 29.33, 93.64), 2: (86.72, 23.17, 96.36)},
+}
+RECORD_S, SETTLE_S, BEFORE_S = 1.5, 1.5, 0.2
+
+
+def damping_from_overshoot(mp_percent: float) -> float:
+    """zeta of the second-order system with this overshoot; 1 when there is none."""
+    if mp_percent <= 0:
+        return 1.0
+    log = np.log(mp_percent / 100.0)
+    return float(-log / np.sqrt(np.pi ** 2 + log ** 2))
+
+
+def step_metrics(t: np.ndarray, y: np.ndarray, size: float) -> dict:
+    """Mp (%), zeta and Mf (um) of a step response y(t) (m, starting at 0) to a step of `size` m."""
+    import control
+
+    info = control.step_info(y, T=t, yfinal=size)
+    mp = max(0.0, float(info["Overshoot"]))
+    dt = float(np.median(np.diff(t)))
+    grid = np.arange(t[0], t[-1], dt)
+    residual = np.interp(grid, t, y) - size
+    spectrum = 2.0 * np.abs(np.fft.rfft(residual)) / len(residual)
+    freqs = np.fft.rfftfreq(len(residual), dt)
+    band = (freqs >= 5.0) & (freqs <= min(20.0, 0.5 / dt))
+    return {"Mp": mp, "zeta": damping_from_overshoot(mp), "Mf_um": float(spectrum[band].max() * 1e6),
+            "rise_time_s": float(info["RiseTime"]), "settling_time_s": float(info["SettlingTime"])}
+
+
+class Experiment:
+    def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0) -> None:
+        from geometry_msgs.msg import PoseStamped
+
+        self.graph, self.rate_hz = graph, rate_hz
+        period = 0.012 if rate_hz < 200 else 0.004
+        self.period = period
+        profiler_port, mcu_port, robot_port = free_port(), free_port(), free_port()
+        graph.start("sim_cell", {"profiler_port": profiler_port, "mcu_port": mcu_port, "robot_port": robot_port,
+                                 "control_period": period, "noise_std": noise_std, "seed": seed,
+                                 "diagnostics_period": 0.5})
+        graph.start("profiler_driver", {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}",
+                                        "diagnostics_period": 0.5})
+        graph.start("pose_estimator", {"diagnostics_period": 0.5})
+        graph.start("pd_compensator", {"diagnostics_period": 0.5})
+        graph.start("motoplus_bridge", {"port": robot_port, "period": period, "diagnostics_period": 0.5})
+        node = graph.node
+        self.poses: list[tuple[float, np.ndarray]] = []
+        self.truth: list[tuple[float, np.ndarray]] = []
+        self.diagnostics: dict[str, dict] = {}
+        node.create_subscription(PoseStamped, "pose", self._on_pose, 1000)
+        node.create_subscription(PoseStamped, "/sim/ground_truth", lambda m: self.truth.append(self._sample(m)), 1000)
+        from diagnostic_msgs.msg import DiagnosticArray
+        node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
+        self.reference_pub = node.create_publisher(PoseStamped, "reference_pose", 10)
+        self.home: tuple[np.ndarray, np.ndarray] | None = None
+        self.last_rotation = np.eye(3)
+
+    def _on_pose(self, msg) -> None:
+        self.poses.append(self._sample(msg))
+        self.last_rotation = rotation_translation(msg.pose)[0]
+
+    @staticmethod
+    def _sample(msg) -> tuple[float, np.ndarray]:
+        rotation, translation = rotation_translation(msg.pose)
+        return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, translation
+
+    def _on_diagnostics(self, msg) -> None:
+        for status in msg.status:
+            self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+
+    def value(self, node: str, key: str, default: str = "") -> str:
+        for name, values in self.diagnostics.items():
+            if name.startswith(node):
+                return values.get(key, default)
+        return default
+
+    def wait(self, seconds: float) -> None:
+        self.graph.spin_until(lambda: False, seconds)
+
+    def start(self) -> None:
+        """Wait for poses; home = where the estimate says the profiler is; the reference starts there."""
+        if not self.graph.spin_until(lambda: len(self.poses) > 20, 90.0):
+            raise RuntimeError(f"no poses from the graph; see {self.graph.log_dir}")
+        self.wait(1.0)
+        recent = [p for _, p in self.poses[-int(0.5 / self.period):]]
+        self.home = (self.last_rotation, np.mean(recent, axis=0))
+        self.reference(np.zeros(3))
+
+    def reference(self, offset: np.ndarray) -> None:
+        rotation, position = self.home
+        self.reference_pub.publish(pose_stamped(rotation, position + offset, self.graph.node.get_clock().now().to_msg(),
+                                                "gauge"))
+
+    def set_program(self, offset: np.ndarray) -> None:
+        self.graph.set_parameters("sim_cell", {"program_offset": [float(v) for v in offset] + [0.0, 0.0, 0.0]})
+
+    def bridge(self, arm: bool) -> None:
+        from std_srvs.srv import Trigger
+
+        client = self.graph.node.create_client(Trigger, f"/motoplus_bridge/{'start' if arm else 'stop'}")
+        if not client.wait_for_service(timeout_sec=10.0):
+            raise RuntimeError("motoplus_bridge's services are not available")
+        future = client.call_async(Trigger.Request())
+        self.graph.spin_until(future.done, 10.0)
+        self.graph.node.destroy_client(client)
+        if arm and not self.graph.spin_until(lambda: self.value("motoplus_bridge", "state") == "armed", 10.0):
+            raise RuntimeError(f"the bridge did not arm: {self.value('motoplus_bridge', 'last_error')}")
+
+    def step(self, closed: bool, direction: np.ndarray, size: float) -> dict:
+        """One step and its return; the response along `direction`, from the estimate and the truth."""
+        offset = direction / np.linalg.norm(direction) * size if len(direction) else direction
+        self.wait(BEFORE_S)
+        start = time.time()
+        (self.reference if closed else self.set_program)(offset)
+        self.wait(RECORD_S)
+        (self.reference if closed else self.set_program)(np.zeros(3))
+        self.wait(SETTLE_S)
+        unit = direction / np.linalg.norm(direction)
+        out = {}
+        for name, series in (("estimate", self.poses), ("truth", self.truth)):
+            t = np.array([s for s, _ in series])
+            p = np.array([q for _, q in series])
+            before = (t > start - BEFORE_S) & (t < start)
+            during = (t >= start) & (t < start + RECORD_S)
+            y = (p[during] - p[before].mean(axis=0)) @ unit
+            out[name] = {"t": (t[during] - start).tolist(), "y": y.tolist(), **step_metrics(t[during] - start, y, size)}
+        return out
+
+
+def noise_floor(experiment: Experiment, seconds: float = 3.0) -> dict:
+    """Closed loop holding still: how much the arm (truth) and the estimate move, per axis (um, std)."""
+    start = time.time()
+    experiment.wait(seconds)
+    out = {}
+    for name, series in (("estimate", experiment.poses), ("truth", experiment.truth)):
+        p = np.array([q for t, q in series if t >= start])
+        out[name] = (p.std(axis=0) * 1e6).tolist()
+    return out
+
+
+def summarise(runs: list[dict], source: str = "estimate") -> dict:
+    """Mean and std of each metric per (axis, size, mode)."""
+    table_ = {}
+    for r in runs:
+        key = (r["axis"], r["size_mm"], r["mode"])
+        table_.setdefault(key, []).append(r[source])
+    return {key: {m: (float(np.mean([x[m] for x in v])), float(np.std([x[m] for x in v])))
+                  for m in ("Mp", "zeta", "Mf_um")} for key, v in table_.items()}
+
+
+def improvement(open_value: float, closed_value: float, higher_is_better: bool) -> float:
+    if higher_is_better:
+        return 100.0 * (closed_value - open_value) / open_value
+    return 100.0 * (open_value - closed_value) / open_value if open_value else 0.0
+
+
+def table_iv(runs: list[dict], axes: list[str], sizes: list[float]) -> tuple[str, list[dict]]:
+    s = summarise(runs)
+    rows, checks = [], []
+    for axis in axes:
+        for size in sizes:
+            o, c = s[(axis, size, "open")], s[(axis, size, "closed")]
+            gains = [improvement(o["Mp"][0], c["Mp"][0], False), improvement(o["zeta"][0], c["zeta"][0], True),
+                     improvement(o["Mf_um"][0], c["Mf_um"][0], False)]
+            paper = PAPER_IMPROVEMENT.get(axis, {}).get(int(size))
+            for mode, m in (("open", o), ("closed", c)):
+                rows.append([f"{axis} {size:g} mm", mode, f"{m['Mp'][0]:.2f} ± {m['Mp'][1]:.2f}",
+                             f"{m['zeta'][0]:.2f} ± {m['zeta'][1]:.2f}", f"{m['Mf_um'][0]:.2f} ± {m['Mf_um'][1]:.2f}"])
+            rows.append([f"{axis} {size:g} mm", "improvement", *(f"{g:.1f} %" for g in gains)])
+            if paper:
+                rows.append([f"{axis} {size:g} mm", "paper's", *(f"{g:.1f} %" for g in paper)])
+                checks.append({"axis": axis, "size_mm": size, "ours": gains, "paper": list(paper),
+                               "at_least_paper": all(g >= p for g, p in zip(gains, paper))})
+    text = table(["step", "", "Mp (%)", "zeta", "Mf (um)"], rows,
+                 "Table IV on the simulated cell (from the estimated poses; mean ± std over repeats)")
+    return text, checks
+
+
+def plot(runs: list[dict], out, axes: list[str]) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    fig, panels = plt.subplots(1, len(axes), figsize=(4 * len(axes), 3.2), squeeze=False)
+    for panel, axis in zip(panels[0], axes):
+        for mode, style in (("open", "C3"), ("closed", "C0")):
+            r = next((r for r in runs if r["axis"] == axis and r["mode"] == mode and r["size_mm"] == 1.0), None)
+            if r:
+                panel.plot(r["estimate"]["t"], np.array(r["estimate"]["y"]) * 1e3, style,
+                           label=f"{'OL' if mode == 'open' else 'CL'}")
+        panel.set_title(f"{axis}, 1 mm step")
+        panel.set_xlabel("time (s)")
+        panel.set_ylabel("position (mm)")
+        panel.legend()
+    fig.tight_layout()
+    paths.append(str(out / "fig6_open_vs_closed.png"))
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    r = next((r for r in runs if r["mode"] == "open" and r["size_mm"] == 1.0), None)
+    if r:
+        fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.2))
+        for name, style in (("truth", "k--"), ("estimate", "C0")):
+            t, y = np.array(r[name]["t"]), np.array(r[name]["y"])
+            a.plot(t, y * 1e3, style, label=name)
+            dt = float(np.median(np.diff(t)))
+            grid = np.arange(t[0], t[-1], dt)
+            res = np.interp(grid, t, y) - 1e-3
+            b.plot(np.fft.rfftfreq(len(res), dt), 2 * np.abs(np.fft.rfft(res)) / len(res) * 1e6, style, label=name)
+        a.set_title(f"open-loop step, {r['axis']}")
+        a.set_xlabel("time (s)")
+        a.set_ylabel("position (mm)")
+        b.set_xlabel("frequency (Hz)")
+        b.set_ylabel("amplitude (um)")
+        a.legend()
+        fig.tight_layout()
+        paths.append(str(out / "fig5_open_loop.png"))
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+    return paths
+
+
+def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise: float, out, seed: int = 0) -> dict:
+    graph = Graph(out / "logs", client_name="profile_pose_experiment")
+    runs: list[dict] = []
+    try:
+        exp = Experiment(graph, rate_hz, noise, seed)
+        exp.start()
+        for mode in ("open", "closed"):
+            exp.bridge(arm=(mode == "closed"))
+            exp.reference(np.zeros(3))
+            exp.wait(1.0)
+            for axis in axes:
+                for size in sizes:
+                    for k in range(repeats):
+                        result = exp.step(mode == "closed", np.array(AXES[axis]), size * 1e-3)
+                        runs.append({"mode": mode, "axis": axis, "size_mm": size, "repeat": k, **result})
+                        e = result["estimate"]
+                        print(f"  {mode:6s} {axis:3s} {size:g} mm #{k + 1}: Mp {e['Mp']:6.2f} %  "
+                              f"zeta {e['zeta']:.2f}  Mf {e['Mf_um']:6.2f} um", flush=True)
+        floor = noise_floor(exp)
+        exp.bridge(arm=False)
+        diagnostics = exp.diagnostics
+    finally:
+        graph.close()
+    return {"rate_hz": rate_hz, "runs": runs, "noise_floor_um": floor, "diagnostics": diagnostics}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rate", type=float, default=83.333, help="control rate: 83.333 (12 ms) or 250 (4 ms)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--sizes", type=float, nargs="+", default=[1.0, 2.0], help="step sizes (mm)")
+    parser.add_argument("--axes", nargs="+", default=list(AXES), choices=list(AXES))
+    parser.add_argument("--noise", type=float, default=5e-6, help="profile depth noise (m)")
+    parser.add_argument("--out", default="runs")
+    args = parser.parse_args(argv)
+    out = run_dir(args.out, "experiment")
+    print(f"Table IV protocol at {args.rate:g} Hz: {len(args.axes)} axes x {len(args.sizes)} sizes x "
+          f"{args.repeats} repeats, open and closed loop; logs in {out / 'logs'}", flush=True)
+    result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out)
+    text, checks = table_iv(result["runs"], args.axes, args.sizes)
+    print(text)
+    floor = result["noise_floor_um"]
+    print("loop noise floor, closed loop holding still (std, um, x y z): estimate "
+          + " ".join(f"{v:.1f}" for v in floor["estimate"]) + "; arm (truth) "
+          + " ".join(f"{v:.1f}" for v in floor["truth"]))
+    for c in checks:
+        print(f"  {c['axis']} {c['size_mm']:g} mm: improvement >= the paper's on Mp, zeta, Mf: "
+              f"{'yes' if c['at_least_paper'] else 'NO'}")
+    result["table_iv_checks"] = checks
+    result["plots"] = plot(result["runs"], out, [a for a in args.axes if a != "xyz"])
+    write_json(out / "experiment.json", result)
+    print(f"results: {out / 'experiment.json'}; plots: {', '.join(result['plots'])}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
