@@ -95,3 +95,15 @@ def test_matcher_offset_survives_the_profilers_count_wrapping() -> None:
     matcher.note_profile(2 ** 32 - 1)
     matcher.add_trigger(2, 5.001)
     assert matcher.trigger_time(0) == 5.001  # the profiler's count wrapped to 0
+
+
+def test_matcher_refuses_a_pairing_the_last_count_contradicts() -> None:
+    matcher = TriggerMatcher()
+    matcher.arm(last_count=500)  # the last profile before disarming was count 500: the next trigger is 501
+    matcher.add_trigger(1, 1.0)
+    matcher.note_profile(502)  # 501's profile was lost: pairing 502 with seq 1 would be one period off
+    assert matcher.offset is None and not matcher.pairing and matcher.disagreements == 1
+    matcher.arm(last_count=502)
+    matcher.add_trigger(1, 2.0)
+    matcher.note_profile(503)
+    assert matcher.offset == 502 and matcher.trigger_time(503) == 2.0

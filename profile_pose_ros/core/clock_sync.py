@@ -128,11 +128,17 @@ class TriggerMatcher:
         self._armed = False
         self._first_seq: int | None = None
         self._first_count: int | None = None
+        self._expected_offset: int | None = None
+        self.disagreements = 0
 
-    def arm(self) -> None:
-        """Forget the pairing; the next trigger and the next profile define it."""
+    def arm(self, last_count: int | None = None) -> None:
+        """Forget the pairing; the next trigger and the next profile define it. `last_count`, the profiler's
+        count of the last profile before disarming, gives a second opinion: the first trigger after arming
+        is last_count + 1. If the first profile after arming was lost, the two disagree and pairing fails
+        (offset stays None, `disagreements` counts it) so the caller pairs again."""
         self.forget()
         self._armed = True
+        self._expected_offset = None if last_count is None else last_count & 0xFFFFFFFF
 
     def forget(self) -> None:
         """No pairing until the next arm() (the MCU or the profiler restarted)."""
@@ -161,8 +167,12 @@ class TriggerMatcher:
 
     def _learn(self) -> None:
         if self._first_seq is not None and self._first_count is not None:
-            self.offset = (self._first_count - self._first_seq) & 0xFFFFFFFF
+            offset = (self._first_count - self._first_seq) & 0xFFFFFFFF
             self._armed = False
+            if self._expected_offset is not None and offset != self._expected_offset:
+                self.disagreements += 1
+                return
+            self.offset = offset
 
     def trigger_time(self, trigger_count: int) -> float | None:
         if self.offset is None:

@@ -108,6 +108,9 @@ class MotoPlusClient:
                 self._session(sock)
             except (OSError, mp.MotoPlusProtocolError) as exc:
                 self.last_error = f"tcp://{self.host}:{self.port}: {exc}"
+            except Exception as exc:  # noqa: BLE001 - a bug here must disarm, not kill the thread
+                self.last_error = f"unexpected {exc!r}"
+                self.log(f"bridge socket thread: {self.last_error}")
             if self.state in (ARMED, ARMING):  # a session lost without STOP is a fault: re-arm by hand
                 self._arm_requested.clear()
                 self.counters.faults += 1

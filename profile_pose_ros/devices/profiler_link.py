@@ -59,6 +59,7 @@ class ProfilerLink:
         self.matcher = TriggerMatcher()
         self._cond = threading.Condition()
         self._last_count: int | None = None
+        self._count_seen_on_this_connection = False
         self._misses = 0
         self._resync = threading.Event()
         self._stop = threading.Event()
@@ -102,6 +103,7 @@ class ProfilerLink:
             try:
                 self.source.open()
                 self.counters.connections += 1
+                self._count_seen_on_this_connection = False  # the device may have restarted its count
                 backoff = self.settings.backoff_min
                 if self.matcher.offset is None and not self.matcher.pairing:
                     self._resync.set()  # a reconnect to the same device keeps its count: no need to re-pair
@@ -148,16 +150,17 @@ class ProfilerLink:
             quiet_since = time.monotonic()
             deadline = quiet_since + 1.0
             while time.monotonic() - quiet_since < self.settings.sync_quiet and time.monotonic() < deadline:
-                items = self.source.read(0.01)
-                if items:
-                    self.counters.discarded += sum(isinstance(i, ProfileFrame) for i in items)
+                frames = [i for i in self.source.read(0.01) if isinstance(i, ProfileFrame)]
+                if frames:
+                    self.counters.discarded += len(frames)
+                    self._last_count = frames[-1].trigger_count
+                    self._count_seen_on_this_connection = True
                     quiet_since = time.monotonic()
             if not self.trigger.command("RESET"):
                 self.last_error = "trigger MCU did not acknowledge RESET"
                 return
-            with self._cond:
-                self.matcher.arm()
-            self._last_count = None
+            with self._cond:  # the last profile before disarming says which count the next trigger gets
+                self.matcher.arm(self._last_count if self._count_seen_on_this_connection else None)
             self._misses = 0
         finally:
             if not self.trigger.command("ARM"):  # always: a disarmed MCU would stop the whole cell
@@ -181,9 +184,11 @@ class ProfilerLink:
             gap = (frame.trigger_count - self._last_count - 1) & 0xFFFFFFFF
             if gap < 0x80000000:
                 c.dropped += gap
-            elif self.trigger is not None:  # the count went back: the device restarted, pair again
+            elif self.trigger is not None and not self.matcher.pairing:  # the count went back: the device
+                #                                                           restarted; pair again
                 self.request_resync("the profiler's trigger count restarted")
         self._last_count = frame.trigger_count
+        self._count_seen_on_this_connection = True
         stamp = self._trigger_time(frame.trigger_count)
         synced = stamp is not None
         if not synced and self._mcu_starting():

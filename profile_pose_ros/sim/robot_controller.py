@@ -234,9 +234,10 @@ class RobotController:
         """Latch: disarm, tell the bridge why, and close the session (lock held)."""
         self.faults_raised += 1
         self.last_fault = (code, text)
+        ack = self.session.last_seq if self.session else 0
+        self.session = None  # disarmed before the peer hears why
         self._seq += 1
-        self.server.send(mp.encode(mp.Frame(self._seq, self.session.last_seq if self.session else 0,
-                                            mp.Fault(code, text))))
+        self.server.send(mp.encode(mp.Frame(self._seq, ack, mp.Fault(code, text))))
         self._end_session()
 
     def _end_session(self) -> None:

@@ -1,0 +1,92 @@
+"""pd_compensator: the filter and PD law, zero motion on stale input, validated gains (real rclpy)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamped
+from rclpy.parameter import Parameter
+from rclpy.time import Time
+
+from profile_pose_ros.core.compensator import AxisKalman, Gains, Mounting, covariance_in_base, pd_velocity
+from profile_pose_ros.core.poses import LOOKING_DOWN
+from profile_pose_ros.nodes.messages import pose_stamped, pose_with_covariance
+from profile_pose_ros.nodes.pd_compensator import PdCompensatorNode
+
+
+def filtered_error(declared_variance: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    kf = AxisKalman(np.full(6, 0.1))
+    errors = []
+    for k in range(400):
+        t = k * 0.012
+        truth = np.full(6, 1e-3 * np.sin(2 * np.pi * 0.5 * t))
+        kf.update(t, truth + rng.normal(0, noise), declared_variance)
+        errors.append(kf.position - truth)
+    return np.array(errors[50:])
+
+
+def test_kalman_uses_each_poses_variance_and_follows_motion() -> None:
+    noise = np.array([1e-6, 1e-4, 1e-6, 1e-6, 1e-6, 1e-6])  # axis 1: the weakly observed one
+    told = filtered_error(noise ** 2, noise)
+    misled = filtered_error(np.full(6, 1e-12), noise)  # a filter that believed every pose exactly
+    assert np.std(told[:, 1]) < 0.95 * np.std(misled[:, 1])
+    assert np.max(np.abs(told[:, 0])) < 1e-5  # the well-measured axis still follows the motion
+
+
+def test_pd_velocity_is_limited_and_gains_are_checked() -> None:
+    gains = Gains((10.0,) * 6, (0.5,) * 6, (0.01,) * 6)
+    v = pd_velocity(np.array([1e-3, -1e-2, 0, 0, 0, 0]), np.zeros(6), gains)
+    assert v[0] == pytest.approx(0.01) and v[1] == pytest.approx(-0.01)
+    for bad in (Gains((10.0,) * 5, (0.5,) * 6, (0.01,) * 6), Gains((-1.0,) * 6, (0.5,) * 6, (0.01,) * 6),
+                Gains((float("nan"),) * 6, (0.5,) * 6, (0.01,) * 6)):
+        with pytest.raises(ValueError):
+            bad.check()
+
+
+def test_covariance_is_rotated_into_the_base_frame() -> None:
+    covariance = np.diag([1.0, 4.0, 9.0, 1.0, 1.0, 1.0])
+    quarter_turn = Mounting((0.0, 0.0, 0.0, 0.0, 0.0, np.pi / 2))
+    np.testing.assert_allclose(covariance_in_base(covariance, quarter_turn)[:3], [4.0, 1.0, 9.0], atol=1e-12)
+
+
+def compensator(ros, **params) -> PdCompensatorNode:
+    return ros.add(PdCompensatorNode(context=ros.context,
+                                     parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]))
+
+
+def test_stale_pose_gives_zero_correction_within_three_periods(ros) -> None:
+    node = compensator(ros, max_pose_age=0.036)
+    talker = ros.node("talker")
+    poses = talker.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
+    reference = talker.create_publisher(PoseStamped, "reference_pose", 10)
+    corrections = []
+    talker.create_subscription(TwistStamped, "correction", lambda m: corrections.append((time.monotonic(), m)), 100)
+    translation = np.array([0.0, 0.0, 0.45])
+    covariance = np.diag([1e-10] * 3 + [1e-8] * 3)
+
+    def publish_pose() -> None:
+        pose = pose_stamped(LOOKING_DOWN, translation, Time(nanoseconds=time.time_ns()).to_msg(), "gauge")
+        poses.publish(pose_with_covariance(pose, covariance))
+
+    assert ros.spin_until(lambda: node.count_publishers("reference_pose") and node.count_subscribers("correction"), 5)
+    reference.publish(pose_stamped(LOOKING_DOWN, translation + [1e-3, 0, 0], talker.get_clock().now().to_msg(),
+                                   "gauge"))
+    assert ros.spin_until(lambda: node.reference is not None, 5.0)
+    moving = lambda: any(abs(m.twist.linear.x) > 0 for _, m in corrections)  # noqa: E731
+    assert ros.spin_until(moving, 5.0, action=publish_pose)
+    stopped_at = time.monotonic()  # the poses stop (the estimator rejects every profile, say)
+    ros.spin_until(lambda: any(t > stopped_at + 0.1 for t, _ in corrections), 2.0)
+    after = [(t - stopped_at, m.twist.linear.x) for t, m in corrections if t > stopped_at]
+    first_zero = next(t for t, vx in after if vx == 0.0)
+    assert first_zero <= 3 * 0.012 + 0.02  # three control periods (and one watchdog tick)
+    assert all(vx == 0.0 for t, vx in after if t > first_zero)
+
+
+def test_gains_out_of_range_are_rejected_at_run_time(ros) -> None:
+    node = compensator(ros)
+    result = node.set_parameters([Parameter("kp", value=[1.0] * 5)])[0]
+    assert not result.successful and "six values" in result.reason
+    assert not node.set_parameters([Parameter("kd", value=[9.0] * 6)])[0].successful
+    assert node.set_parameters([Parameter("kp", value=[3.0] * 6)])[0].successful and node.gains.kp == (3.0,) * 6

@@ -1,0 +1,128 @@
+"""sim_cell's robot controller enforces the MotoPlus protocol's rules (a raw client on loopback)."""
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from profile_pose_ros.core import motoplus_protocol as mp
+from profile_pose_ros.sim.arm import Arm
+from profile_pose_ros.sim.robot_controller import RobotController
+
+HELLO = mp.Hello(12000, (100,) * 6, (3000,) * 6, 300)
+
+
+class Client:
+    def __init__(self, port: int) -> None:
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=2.0)
+        self.reader = mp.FrameReader()
+        self.seq = 0
+        self.frames: list[mp.Frame] = []
+
+    def send(self, body, seq: int | None = None) -> None:
+        self.seq = self.seq + 1 if seq is None else seq
+        self.sock.sendall(mp.encode(mp.Frame(self.seq, 0, body)))
+
+    def next(self, kind=mp.State, timeout: float = 2.0) -> mp.Frame:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            while self.frames:
+                frame = self.frames.pop(0)
+                if isinstance(frame.body, kind):
+                    return frame
+            data = self.sock.recv(4096)
+            if not data:
+                raise ConnectionError("closed")
+            self.frames += self.reader.feed(data)
+        raise TimeoutError(kind)
+
+
+@pytest.fixture
+def controller():
+    c = RobotController(Arm(), port=0).start()
+    yield c
+    c.close()
+
+
+def armed(controller) -> Client:
+    client = Client(controller.port)
+    client.send(HELLO)
+    assert client.next().body.status & mp.ARMED
+    return client
+
+
+def test_state_paces_the_loop_and_increments_are_clamped(controller) -> None:
+    client = armed(controller)
+    times = []
+    for _ in range(10):
+        state = client.next()
+        times.append(time.monotonic())
+        client.send(mp.Correction((1000, -1000, 0, 0, 0, 0)))  # 10x the per-cycle limit
+    state = client.next()
+    assert 0.008 < np.median(np.diff(times)) < 0.016  # one STATE per 12 ms period
+    assert state.body.offset[:2] == (1000, -1000)  # 10 periods x 100 um, not 10 x 1000
+    assert state.body.status & mp.CLAMPED and controller.clamped >= 9
+
+
+def test_three_missed_periods_hold_still(controller) -> None:
+    client = armed(controller)
+    for _ in range(5):
+        state = client.next()
+    assert state.body.status & mp.HOLDING and state.body.offset == (0,) * 6
+
+
+def test_sequence_gap_faults_and_disarms(controller) -> None:
+    client = armed(controller)
+    client.next()
+    client.send(mp.Correction((10,) + (0,) * 5), seq=client.seq + 5)
+    fault = client.next(mp.Fault)
+    assert fault.body.code == mp.FAULT_SEQUENCE_GAP and controller.session is None
+
+
+def test_correction_before_hello_faults(controller) -> None:
+    client = Client(controller.port)
+    client.send(mp.Correction((10,) + (0,) * 5))
+    assert client.next(mp.Fault).body.code == mp.FAULT_NOT_ARMED
+
+
+def test_watchdog_ends_a_silent_session(controller) -> None:
+    client = armed(controller)
+    fault = client.next(mp.Fault, timeout=3.0)
+    assert fault.body.code == mp.FAULT_WATCHDOG and controller.session is None
+
+
+def test_total_offset_bound_faults(controller) -> None:
+    client = armed(controller)
+    with pytest.raises(ConnectionError):
+        for _ in range(40):  # 100 um per period runs into the 3 mm bound
+            client.next()
+            client.send(mp.Correction((100,) + (0,) * 5))
+    assert controller.last_fault[0] == mp.FAULT_LIMIT
+    assert controller.correction[0] <= 3000
+
+
+def test_a_second_peer_is_refused(controller) -> None:
+    first = armed(controller)
+    second = socket.create_connection(("127.0.0.1", controller.port), timeout=2.0)
+    assert second.recv(16) == b""  # closed at once
+    assert first.next().body.status & mp.ARMED and controller.server.refused == 1
+
+
+def test_hello_with_the_wrong_period_is_refused(controller) -> None:
+    client = Client(controller.port)
+    client.send(mp.Hello(4000, (100,) * 6, (3000,) * 6, 300))
+    assert client.next(mp.Fault).body.code == mp.FAULT_PROTOCOL and controller.session is None
+
+
+def test_arm_model_reproduces_table_iv_open_loop() -> None:
+    for size, expected in ((1e-3, (5.39, 65.88, 13.98)), (2e-3, (4.86, 39.48, 8.06))):
+        arm = Arm()
+        arm.command[:] = size
+        peak = np.zeros(6)
+        for _ in range(300):
+            arm.advance(0.004)
+            peak = np.maximum(peak, arm.position)
+        overshoot = 100 * (peak[:3] - size) / size
+        np.testing.assert_allclose(overshoot, expected, rtol=0.02)
