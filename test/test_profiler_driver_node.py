@@ -161,7 +161,9 @@ def test_streams_again_after_the_cell_restarts(rig_factory) -> None:
     first = next(t for t, _ in reversed(rig.profiles) if t >= restarted) if rig.profiles else None
     assert first is not None and rig.link.counters.connections == 2
     rig.ros.spin_until(lambda: rig.link.counters.published >= before + 100, 10.0)
-    assert rig.link.counters.unsynced == 0
+    # a profile that beats the new MCU's READY to the driver goes out with its receive time (counted),
+    # never with a stale pairing
+    assert rig.link.counters.unsynced <= 2
     rig.check_published_against_truth()
 
 
