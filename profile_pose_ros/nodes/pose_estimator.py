@@ -16,7 +16,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 
@@ -57,6 +57,9 @@ PARAMETERS = [
     Param("robust_line_fit", True, "Reject outlier points (spikes) in each face line fit."),
     Param("max_reprojection_error", 1e-4, "Reject poses whose mean corner residual exceeds this (m).", 1e-7, 0.01),
     Param("diagnostics_period", 1.0, "Period of /diagnostics messages (s).", 0.02, 60.0),
+    Param("queue_depth", 5, "Profiles the subscription keeps while this node is busy (sensor-data QoS, newest "
+          "kept): deeper rides out scheduling hiccups at 1 kHz, shallower never works on old profiles.", 1, 1000,
+          read_only=True),
 ]
 
 _OPTION_OF_PARAMETER = {
@@ -100,7 +103,10 @@ class PoseEstimatorNode(Node):
         # Sensor-data QoS keeps the newest profiles: a consumer that falls behind drops the oldest, and the
         # middleware reports them through the message-lost handler so diagnostics can say so.
         self.profile_sub = self.create_subscription(
-            PointCloud2, "profile", self._on_profile, qos_profile_sensor_data, callback_group=ServedDirectly(),
+            PointCloud2, "profile", self._on_profile,
+            QoSProfile(depth=self.values["queue_depth"], reliability=qos_profile_sensor_data.reliability,
+                       durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history),
+            callback_group=ServedDirectly(),
             event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
         for handler in SubscriptionEventCallbacks(message_lost=self._on_lost).create_event_handlers(
                 MutuallyExclusiveCallbackGroup(), self.profile_sub.handle, self.profile_sub.topic_name):

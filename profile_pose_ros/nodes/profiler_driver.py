@@ -28,7 +28,7 @@ from .run import run_node
 NODE_NAME = "profiler_driver"
 BACKENDS = ("sim", "ljx")
 
-GIL_SWITCH_INTERVAL = 2e-4  # s; CPython's default is 5 ms
+GIL_SWITCH_INTERVAL = 1e-3  # s; CPython's default is 5 ms
 
 PARAMETERS = [
     Param("backend", "sim", "Profiler backend: 'sim' (sim_cell's TCP protocol) or 'ljx' (Keyence LJ-X8000 "
@@ -141,7 +141,7 @@ class ProfilerDriverNode(Node):
 
 
 def main(args=None) -> int:
-    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # the serial thread timestamps trigger lines; it must not wait for the GIL
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # the serial thread timestamps lines (unless the kernel does)
     return run_node(ProfilerDriverNode, NODE_NAME, args, startup_errors=(ValueError, OSError))
 
 

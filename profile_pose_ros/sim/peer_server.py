@@ -24,6 +24,7 @@ class PeerServer:
         self.host, self.port = self._listener.getsockname()[:2]
         self._peer: socket.socket | None = None
         self._lock = threading.Lock()
+        self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self.connections = self.refused = 0
         self._thread = threading.Thread(target=self._accept_loop, name=f"{name}-accept", daemon=True)
@@ -63,7 +64,8 @@ class PeerServer:
         if peer is None:
             return False
         try:
-            peer.sendall(data)
+            with self._send_lock:  # whole frames: two threads' sendall calls must not interleave
+                peer.sendall(data)
             return True
         except OSError:
             self.drop(peer)

@@ -67,6 +67,7 @@ class ProfilerDevice:
         self._order = itertools.count()
         self._wake = threading.Condition()
         self._stop = False
+        self._last_sent = time.monotonic()
         self._sender = threading.Thread(target=self._send_loop, name="profiler-send", daemon=True)
 
     @property
@@ -100,20 +101,23 @@ class ProfilerDevice:
             frame = corrupt(frame, mode, self.rng)
             self.frames_corrupted += 1
             status = f"corrupted ({mode})"
+        if f.delay_s <= 0 and not self._queue:
+            self._send_frame(frame)  # straight out from the trigger's thread: no hand-over per frame
+            self._last_sent = time.monotonic()
+            return status
         with self._wake:
             heapq.heappush(self._queue, (time.monotonic() + f.delay_s, next(self._order), frame))
             self._wake.notify()
         return status
 
     def _send_loop(self) -> None:
-        last_sent = time.monotonic()
         while True:
             with self._wake:
                 while not self._stop:
                     now = time.monotonic()
                     if self._queue and self._queue[0][0] <= now:
                         break
-                    due = self._queue[0][0] if self._queue else last_sent + self.heartbeat_s
+                    due = self._queue[0][0] if self._queue else self._last_sent + self.heartbeat_s
                     if not self._queue and due <= now:
                         break
                     self._wake.wait(timeout=max(due - now, 0.0))
@@ -125,7 +129,7 @@ class ProfilerDevice:
                                               frame_type=TYPE_HEARTBEAT))
             else:
                 self._send_frame(item[2])
-            last_sent = time.monotonic()
+            self._last_sent = time.monotonic()
 
     def _send_frame(self, frame: bytes) -> None:
         if not self.server.send(frame):

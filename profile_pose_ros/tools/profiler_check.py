@@ -31,7 +31,8 @@ def stamp_ns(stamp) -> int:
 
 class CheckRun:
     def __init__(self, graph: Graph, rate_hz: float, seconds: float, noise_std: float, drop_fraction: float,
-                 seed: int = 0, watch_profiles: bool = False) -> None:
+                 seed: int = 0, watch_profiles: bool = False, baudrate: int = 1_000_000,
+                 queue_depth: int = 5) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
         from rclpy.qos import qos_profile_sensor_data
@@ -41,12 +42,12 @@ class CheckRun:
         self.triggers = int(round(rate_hz * seconds))
         profiler_port, mcu_port = free_port(), free_port()
         graph.start("sim_cell", {"profiler_port": profiler_port, "mcu_port": mcu_port, "trigger_rate": 0.0,
-                                 "robot_enabled": False,
+                                 "robot_enabled": False, "mcu_baudrate": baudrate,
                                  "noise_std": noise_std, "drop_fraction": drop_fraction, "seed": seed,
                                  "diagnostics_period": 0.5, **SINES})
         graph.start("profiler_driver", {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}",
-                                        "diagnostics_period": 0.5})
-        graph.start("pose_estimator", {"diagnostics_period": 0.5})
+                                        "baudrate": baudrate, "diagnostics_period": 0.5})
+        graph.start("pose_estimator", {"diagnostics_period": 0.5, "queue_depth": queue_depth})
         self.truth: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.profile_stamps: list[int] = []
         self.poses: list[tuple[int, np.ndarray, np.ndarray]] = []
@@ -61,14 +62,14 @@ class CheckRun:
         self.baseline: dict[str, int] = {}
 
     def _on_truth(self, msg) -> None:
-        self.truth[stamp_ns(msg.header.stamp)] = rotation_translation(msg.pose)
+        self.truth[stamp_ns(msg.header.stamp)] = msg.pose  # converted when compared: keep up at 1 kHz
 
     def _on_profile(self, raw: bytes) -> None:
         sec, nanosec = CDR_STAMP.unpack_from(raw)  # the stamp only: no need to decode 3200 points here
         self.profile_stamps.append(sec * 1_000_000_000 + nanosec)
 
     def _on_pose(self, msg) -> None:
-        self.poses.append((stamp_ns(msg.header.stamp), *rotation_translation(msg.pose)))
+        self.poses.append((stamp_ns(msg.header.stamp), msg.pose))
 
     def _on_diagnostics(self, msg) -> None:
         for status in msg.status:
@@ -144,14 +145,15 @@ class CheckRun:
         np.savez_compressed(self.graph.log_dir / "stamp_errors.npz", profile_stamp_ns=stamps,
                             stamp_error_us=stamp_error_us)
         position, rotation, unmatched = [], [], 0
-        for stamp, r, t in self.poses:
+        for stamp, pose in self.poses:
+            r, t = rotation_translation(pose)
             k = np.searchsorted(truth_stamps, stamp)
             candidates = [truth_stamps[j] for j in (k - 1, k) if 0 <= j < len(truth_stamps)]
             best = min(candidates, key=lambda s: abs(s - stamp))
             if abs(best - stamp) > 0.5e9 / self.rate_hz:
                 unmatched += 1
                 continue
-            true_r, true_t = self.truth[best]
+            true_r, true_t = rotation_translation(self.truth[best])
             position.append(np.linalg.norm(t - true_t))
             rotation.append(rotation_angle(r, true_r))
         span = (truth_stamps[-1] - truth_stamps[0]) * 1e-9 if len(truth_stamps) > 1 else float("nan")
@@ -183,6 +185,8 @@ def main(argv=None) -> int:
     parser.add_argument("--drop", type=float, default=0.0, help="fraction of frames sim_cell drops")
     parser.add_argument("--watch-profiles", action="store_true",
                         help="also subscribe to `profile` (else stamps are checked on the poses, which copy them)")
+    parser.add_argument("--baudrate", type=int, default=1_000_000, help="the MCU's serial rate (both sides)")
+    parser.add_argument("--queue-depth", type=int, default=5, help="pose_estimator's profile queue")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "profiler-check")
@@ -191,7 +195,8 @@ def main(argv=None) -> int:
         print(f"{rate:g} Hz for {args.seconds:g} s ...", flush=True)
         graph = Graph(out / f"{rate:g}Hz", client_name="profiler_check")
         try:
-            r = CheckRun(graph, rate, args.seconds, args.noise, args.drop, seed=k, watch_profiles=args.watch_profiles).run()
+            r = CheckRun(graph, rate, args.seconds, args.noise, args.drop, seed=k, watch_profiles=args.watch_profiles,
+                         baudrate=args.baudrate, queue_depth=args.queue_depth).run()
         finally:
             graph.close()
         results.append(r)
