@@ -39,7 +39,8 @@ class LinkCounters:
     dropped: int = 0  # gaps in the profiler's trigger count: profiles the device took but we never got
     #                   (in the stream, or while reconnecting)
     bad_frames: int = 0
-    unsynced: int = 0  # published with the receive time because no trigger line matched
+    unsynced: int = 0  # published with the receive time: no MCU, or the MCU silent
+    late_lines: int = 0  # not published: the MCU is alive but this trigger's line missed sync_timeout
     discarded: int = 0  # received while the MCU link starts or counters are paired (trigger time unknown)
     connections: int = 0
     resyncs: int = 0
@@ -194,11 +195,18 @@ class ProfilerLink:
         if not synced and self._mcu_starting():
             c.discarded += 1  # a stamp from the receive time now would be ms off; the MCU is moments away
             return
+        if not synced and self._mcu_paired():
+            c.late_lines += 1  # the MCU is alive but this trigger's line is late or lost: a receive-time
+            return  #            stamp would be wrong by milliseconds, and the loop trusts stamps
         if not synced:
             c.unsynced += 1
             stamp = arrival
         self.emit(frame, stamp, synced)
         c.published += 1
+
+    def _mcu_paired(self) -> bool:
+        return (self.trigger is not None and self.settings.stamp_source == "trigger" and self.trigger.ok
+                and self.matcher.offset is not None)
 
     def _mcu_starting(self) -> bool:
         """The MCU link is configured and opening, training its clock or pairing counters."""

@@ -117,6 +117,7 @@ class ProfilerDriverNode(Node):
             level, message = OK, f"streaming at {rate:.1f} Hz"
         values = {"state": link.state, "rate_hz": rate, "profiles_published": c.published,
                   "profiles_dropped": c.dropped, "bad_frames": c.bad_frames, "unsynced_profiles": c.unsynced,
+                  "dropped_late_trigger_line": c.late_lines,
                   "discarded_while_pairing": c.discarded, "connections": c.connections, "pairings": c.resyncs,
                   "last_error": link.last_error or "none", "source": link.source.name}
         if trigger is not None:

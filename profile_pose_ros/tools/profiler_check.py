@@ -124,7 +124,8 @@ class CheckRun:
 
     COUNTS = ("sim_cell/triggers", "sim_cell/frames_dropped", "profiler_driver/profiles_dropped",
               "profiler_driver/profiles_published", "profiler_driver/unsynced_profiles",
-              "profiler_driver/discarded_while_pairing", "pose_estimator/poses_published",
+              "profiler_driver/discarded_while_pairing", "profiler_driver/dropped_late_trigger_line",
+              "pose_estimator/poses_published",
               "pose_estimator/profiles_rejected", "pose_estimator/profiles_lost")
 
     def count(self, key: str) -> int:
@@ -170,6 +171,7 @@ class CheckRun:
             "estimator_published": self.count("pose_estimator/poses_published"),
             "driver_unsynced": self.count("profiler_driver/unsynced_profiles"),
             "driver_discarded": self.count("profiler_driver/discarded_while_pairing"),
+            "driver_dropped_late_line": self.count("profiler_driver/dropped_late_trigger_line"),
             "estimator_rejected": self.count("pose_estimator/profiles_rejected"),
             "estimator_lost": self.count("pose_estimator/profiles_lost"),
             "driver_serial_latency_us": float(self.value("profiler_driver", "serial_latency_us", "nan")),

@@ -1,0 +1,70 @@
+"""motoplus_bridge against sim_cell's robot controller running as its own process (real rclpy, loopback)."""
+from __future__ import annotations
+
+import time
+
+import pytest
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.time import Time
+from std_srvs.srv import Trigger
+
+from profile_pose_ros.nodes.motoplus_bridge import MotoPlusBridgeNode
+from profile_pose_ros.tools import processes
+from profile_pose_ros.tools.graph import MODULES, free_port, ros_params
+
+
+@pytest.fixture
+def controller(ros, tmp_path):
+    port = free_port()
+    command = processes.executable("sim_cell", MODULES["sim_cell"]) + ["--ros-args", *ros_params(
+        {"robot_port": port, "profiler_port": 0, "mcu_port": 0, "diagnostics_period": 0.2})]
+    process = processes.start(command, ros.domain_id, tmp_path / "sim_cell.log")
+    yield port
+    processes.stop(process)
+
+
+def test_arms_on_request_moves_on_fresh_corrections_only_and_rearms_after_a_fault(ros, controller) -> None:
+    bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
+        Parameter("port", value=controller), Parameter("max_age", value=0.03),
+        Parameter("diagnostics_period", value=0.2)]))
+    client = ros.node("operator")
+    corrections = client.create_publisher(TwistStamped, "correction", 10)
+    states: list[PoseStamped] = []
+    client.create_subscription(PoseStamped, "robot_state", states.append, 100)
+    start = client.create_client(Trigger, "/motoplus_bridge/start")
+
+    def send(velocity: float, age: float = 0.0) -> None:
+        msg = TwistStamped()
+        msg.header.stamp = Time(nanoseconds=int((time.time() - age) * 1e9)).to_msg()
+        msg.twist.linear.x = velocity
+        corrections.publish(msg)
+
+    # connected but disarmed: corrections move nothing
+    assert ros.spin_until(lambda: bridge.client.state == "connected", 30.0), bridge.client.last_error
+    ros.spin_until(lambda: False, 0.2, action=lambda: send(0.01))
+    assert bridge.client.counters.corrections == 0 and not states
+
+    assert start.wait_for_service(timeout_sec=5.0)
+    future = start.call_async(Trigger.Request())
+    assert ros.spin_until(lambda: future.done() and bridge.client.armed, 10.0)
+
+    x = lambda: states[-1].pose.position.x if states else 0.0  # noqa: E731
+    assert ros.spin_until(lambda: x() > 2e-4, 10.0, action=lambda: send(0.01))  # 10 mm/s -> 120 um per period
+    ros.spin_until(lambda: False, 0.4)  # let the arm settle on its last command
+    held = x()
+    ros.spin_until(lambda: False, 0.5, action=lambda: send(0.01, age=0.2))  # fresh messages, stale stamps
+    assert abs(x() - held) < 2e-6 and bridge.client.counters.zero_corrections > 10
+
+    # the controller ends the session: the bridge disarms, reconnects, and waits for ~/start
+    sim = AsyncParameterClient(client, "sim_cell")
+    assert sim.wait_for_services(timeout_sec=10.0)
+    fault = sim.set_parameters([Parameter("disconnect_after_periods", value=1)])
+    assert ros.spin_until(lambda: fault.done() and bridge.client.counters.connections >= 2
+                          and bridge.client.state == "connected", 10.0)
+    before = len(states)
+    ros.spin_until(lambda: False, 0.3, action=lambda: send(0.01))
+    assert not bridge.client.armed and len(states) == before  # no session: no STATE, no motion
+    future = start.call_async(Trigger.Request())
+    assert ros.spin_until(lambda: future.done() and bridge.client.armed, 10.0)
