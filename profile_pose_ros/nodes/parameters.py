@@ -3,10 +3,12 @@ generated parameter reference say the same thing as the code."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable, TypeVar
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -34,3 +36,11 @@ def declare_all(node: Node, params: list[Param]) -> dict[str, Any]:
     for p in params:
         node.declare_parameter(p.name, p.default, p.descriptor())
     return {p.name: node.get_parameter(p.name).value for p in params}
+
+
+def updated(current: dict, parameters, build: Callable[[dict], T]) -> tuple[dict, T]:
+    """`current` with the changed parameters applied, and what `build` makes of them; build raises
+    ValueError or TypeError for an invalid combination, and then nothing changes."""
+    values = dict(current)
+    values.update({p.name: p.value for p in parameters})
+    return values, build(values)

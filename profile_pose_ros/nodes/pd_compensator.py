@@ -19,7 +19,7 @@ from rclpy.time import Time
 from ..core.compensator import AxisKalman, Gains, Mounting, covariance_in_base, pd_velocity, pose_vector_in_base
 from .diagnostics import OK, WARN, diagnostic_array
 from .messages import rotation_translation
-from .parameters import Param, declare_all
+from .parameters import Param, declare_all, updated
 from .run import run_node
 
 NODE_NAME = "pd_compensator"
@@ -77,10 +77,8 @@ class PdCompensatorNode(Node):
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
-        values = dict(self.values)
-        values.update({p.name: p.value for p in parameters})
         try:
-            gains = gains_from(values)
+            values, gains = updated(self.values, parameters, gains_from)
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         self.values, self.gains = values, gains

@@ -29,7 +29,7 @@ from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .messages import points_from_cloud, pose_stamped, pose_with_covariance
-from .parameters import Param, declare_all
+from .parameters import Param, declare_all, updated
 from .run import run_node
 
 NODE_NAME = "pose_estimator"
@@ -123,10 +123,8 @@ class PoseEstimatorNode(Node):
 
     # ------------------------------------------------------------------ parameters
     def _on_set_parameters(self, parameters) -> SetParametersResult:
-        values = dict(self.values)
-        values.update({p.name: p.value for p in parameters})
         try:
-            options = options_from(values)
+            values, options = updated(self.values, parameters, options_from)
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         if "diagnostics_period" in {p.name for p in parameters}:

@@ -72,11 +72,8 @@ class Experiment:
         node = graph.node
         self.poses: list[tuple[float, np.ndarray]] = []
         self.truth: list[tuple[float, np.ndarray]] = []
-        self.diagnostics: dict[str, dict] = {}
         node.create_subscription(PoseStamped, "pose", self._on_pose, 1000)
         node.create_subscription(PoseStamped, "/sim/ground_truth", lambda m: self.truth.append(self._sample(m)), 1000)
-        from diagnostic_msgs.msg import DiagnosticArray
-        node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
         self.reference_pub = node.create_publisher(PoseStamped, "reference_pose", 10)
         self.home: tuple[np.ndarray, np.ndarray] | None = None
         self.last_rotation = np.eye(3)
@@ -90,15 +87,12 @@ class Experiment:
         rotation, translation = rotation_translation(msg.pose)
         return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, translation
 
-    def _on_diagnostics(self, msg) -> None:
-        for status in msg.status:
-            self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+    @property
+    def diagnostics(self) -> dict:
+        return self.graph.diagnostics
 
     def value(self, node: str, key: str, default: str = "") -> str:
-        for name, values in self.diagnostics.items():
-            if name.startswith(node):
-                return values.get(key, default)
-        return default
+        return self.graph.diagnostic(node, key, default)
 
     def wait(self, seconds: float) -> None:
         self.graph.spin_until(lambda: False, seconds)

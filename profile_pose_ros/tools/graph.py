@@ -56,6 +56,21 @@ class Graph:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._parameter_clients: dict = {}
+        self.diagnostics: dict[str, dict] = {}  # status name -> its values, the newest of each node
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
+
+    def _on_diagnostics(self, msg) -> None:
+        for status in msg.status:
+            self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+
+    def diagnostic(self, node: str, key: str, default: str = "") -> str:
+        """A value from the newest /diagnostics of the node whose status name starts with `node`."""
+        for name, values in self.diagnostics.items():
+            if name.startswith(node):
+                return values.get(key, default)
+        return default
 
     def start(self, executable: str, params: dict | None = None, name: str | None = None) -> subprocess.Popen:
         name = name or executable

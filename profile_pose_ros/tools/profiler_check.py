@@ -33,7 +33,6 @@ class CheckRun:
     def __init__(self, graph: Graph, rate_hz: float, seconds: float, noise_std: float, drop_fraction: float,
                  seed: int = 0, watch_profiles: bool = False, baudrate: int = 1_000_000,
                  queue_depth: int = 5) -> None:
-        from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
@@ -51,13 +50,11 @@ class CheckRun:
         self.truth: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.profile_stamps: list[int] = []
         self.poses: list[tuple[int, np.ndarray, np.ndarray]] = []
-        self.diagnostics: dict[str, dict] = {}
         node = graph.node
         node.create_subscription(PoseStamped, "/sim/ground_truth", self._on_truth, 5000)
         if watch_profiles:  # else the poses' stamps (copied from their profiles) stand for them: less load
             node.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data, raw=True)
         node.create_subscription(PoseStamped, "pose", self._on_pose, 5000)
-        node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
         self.seed = seed
         self.baseline: dict[str, int] = {}
 
@@ -71,15 +68,12 @@ class CheckRun:
     def _on_pose(self, msg) -> None:
         self.poses.append((stamp_ns(msg.header.stamp), msg.pose))
 
-    def _on_diagnostics(self, msg) -> None:
-        for status in msg.status:
-            self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+    @property
+    def diagnostics(self) -> dict:
+        return self.graph.diagnostics
 
     def value(self, node: str, key: str, default: str = "0") -> str:
-        for name, values in self.diagnostics.items():
-            if name.startswith(node):
-                return values.get(key, default)
-        return default
+        return self.graph.diagnostic(node, key, default)
 
     def run(self) -> dict:
         """Start the cell's clock once the driver streams, run `triggers` cycles, then compare."""
