@@ -67,6 +67,9 @@ class SimCell:
         self._stop = threading.Event()
 
     def start(self) -> "SimCell":
+        # compile (or load) the ray trace now: the first render would otherwise stall the first cycles
+        rotation, translation = self.motion.pose_at(0.0)
+        render_profile(self.gauge, rotation, translation, profiler=self.model, trace=trace_depth_fast)
         self.profiler.start()
         self.mcu.start()
         return self
