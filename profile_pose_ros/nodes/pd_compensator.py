@@ -25,9 +25,9 @@ from .run import run_node
 NODE_NAME = "pd_compensator"
 
 PARAMETERS = [
-    Param("kp", [15.0, 8.0, 12.0, 5.0, 5.0, 5.0], "Proportional gain per axis x y z rx ry rz (1/s): velocity "
+    Param("kp", [4.0, 8.0, 4.0, 5.0, 5.0, 5.0], "Proportional gain per axis x y z rx ry rz (1/s): velocity "
           "commanded per unit of pose error."),
-    Param("kd", [0.4, -0.3, 0.1, 0.0, 0.0, 0.0], "Derivative gain per axis (dimensionless): velocity commanded "
+    Param("kd", [-0.2, -0.3, -0.2, 0.0, 0.0, 0.0], "Derivative gain per axis (dimensionless): velocity commanded "
           "per unit of the arm's filtered velocity, subtracted."),
     Param("max_speed", [0.05, 0.05, 0.05, 0.2, 0.2, 0.2], "Correction speed limit per axis (m/s, rad/s)."),
     Param("gauge_in_base", [0.0] * 6, "Pose of the gauge frame G in the robot base frame: x y z (m), rotation "

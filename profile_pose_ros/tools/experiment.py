@@ -38,23 +38,32 @@ def damping_from_overshoot(mp_percent: float) -> float:
 
 
 def step_metrics(t: np.ndarray, y: np.ndarray, size: float) -> dict:
-    """Mp (%), zeta and Mf (um) of a step response y(t) (m, starting at 0) to a step of `size` m."""
+    """Mp (%), zeta and Mf (um) of a step response y(t) (m, starting at 0) to a step of `size` m.
+
+    Mf is the peak of the amplitude spectrum between 5 and 20 Hz of what follows the rise (from the first
+    sample at 90 % of the step, one second of it, less the target): the post-target oscillation the
+    paper's Fig. 5(b) shows at ~10 Hz, without the step's own edge.
+    """
     import control
 
     info = control.step_info(y, T=t, yfinal=size)
     mp = max(0.0, float(info["Overshoot"]))
     dt = float(np.median(np.diff(t)))
-    grid = np.arange(t[0], t[-1], dt)
+    risen = np.nonzero(y >= 0.9 * size)[0]
+    start = t[risen[0]] if len(risen) else t[0]
+    grid = np.arange(start, min(start + 1.0, t[-1]), dt)
     residual = np.interp(grid, t, y) - size
-    spectrum = 2.0 * np.abs(np.fft.rfft(residual)) / len(residual)
+    spectrum = 2.0 * np.abs(np.fft.rfft(residual)) / max(len(residual), 1)
     freqs = np.fft.rfftfreq(len(residual), dt)
     band = (freqs >= 5.0) & (freqs <= min(20.0, 0.5 / dt))
-    return {"Mp": mp, "zeta": damping_from_overshoot(mp), "Mf_um": float(spectrum[band].max() * 1e6),
+    mf = float(spectrum[band].max() * 1e6) if band.any() else float("nan")
+    return {"Mp": mp, "zeta": damping_from_overshoot(mp), "Mf_um": mf,
             "rise_time_s": float(info["RiseTime"]), "settling_time_s": float(info["SettlingTime"])}
 
 
 class Experiment:
-    def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0) -> None:
+    def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0,
+                 compensator: dict | None = None) -> None:
         from geometry_msgs.msg import PoseStamped
 
         self.graph, self.rate_hz = graph, rate_hz
@@ -67,7 +76,7 @@ class Experiment:
         graph.start("profiler_driver", {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}",
                                         "diagnostics_period": 0.5})
         graph.start("pose_estimator", {"diagnostics_period": 0.5})
-        graph.start("pd_compensator", {"diagnostics_period": 0.5})
+        graph.start("pd_compensator", {"diagnostics_period": 0.5, **(compensator or {})})
         graph.start("motoplus_bridge", {"port": robot_port, "period": period, "diagnostics_period": 0.5})
         node = graph.node
         self.poses: list[tuple[float, np.ndarray]] = []
@@ -242,13 +251,14 @@ def plot(runs: list[dict], out, axes: list[str]) -> list[str]:
     return paths
 
 
-def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise: float, out, seed: int = 0) -> dict:
+def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise: float, out, seed: int = 0,
+        compensator: dict | None = None, modes: tuple[str, ...] = ("open", "closed")) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_experiment")
     runs: list[dict] = []
     try:
-        exp = Experiment(graph, rate_hz, noise, seed)
+        exp = Experiment(graph, rate_hz, noise, seed, compensator)
         exp.start()
-        for mode in ("open", "closed"):
+        for mode in modes:
             exp.bridge(arm=(mode == "closed"))
             exp.reference(np.zeros(3))
             exp.wait(1.0)
@@ -275,12 +285,19 @@ def main(argv=None) -> int:
     parser.add_argument("--sizes", type=float, nargs="+", default=[1.0, 2.0], help="step sizes (mm)")
     parser.add_argument("--axes", nargs="+", default=list(AXES), choices=list(AXES))
     parser.add_argument("--noise", type=float, default=5e-6, help="profile depth noise (m)")
+    parser.add_argument("--kp", type=float, nargs=6, help="pd_compensator kp (else its parameter file's)")
+    parser.add_argument("--kd", type=float, nargs=6, help="pd_compensator kd")
+    parser.add_argument("--modes", nargs="+", default=["open", "closed"], choices=["open", "closed"])
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "experiment")
+    gains = {k: list(v) for k, v in (("kp", args.kp), ("kd", args.kd)) if v}
     print(f"Table IV protocol at {args.rate:g} Hz: {len(args.axes)} axes x {len(args.sizes)} sizes x "
           f"{args.repeats} repeats, open and closed loop; logs in {out / 'logs'}", flush=True)
-    result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out)
+    result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=gains,
+                 modes=tuple(args.modes))
+    if len(args.modes) < 2:
+        return 0
     text, checks = table_iv(result["runs"], args.axes, args.sizes)
     print(text)
     floor = result["noise_floor_um"]

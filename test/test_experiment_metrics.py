@@ -1,0 +1,34 @@
+"""Table IV's metrics on known responses (tools/experiment.py)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from profile_pose_ros.tools.experiment import damping_from_overshoot, step_metrics
+
+
+def second_order_step(zeta: float, size: float = 1e-3, rate: float = 83.333) -> tuple[np.ndarray, np.ndarray]:
+    t = np.arange(0, 1.5, 1 / rate)
+    wn = 2 * np.pi * 10
+    wd = wn * np.sqrt(1 - zeta ** 2)
+    y = size * (1 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / np.sqrt(1 - zeta ** 2) * np.sin(wd * t)))
+    return t, y
+
+
+@pytest.mark.parametrize("zeta", [0.13, 0.53, 0.68])
+def test_overshoot_and_damping_of_a_ringing_arm(zeta: float) -> None:
+    t, y = second_order_step(zeta, rate=1000.0)  # finely sampled: the peak is seen
+    m = step_metrics(t, y, 1e-3)
+    assert m["Mp"] == pytest.approx(100 * np.exp(-np.pi * zeta / np.sqrt(1 - zeta ** 2)), rel=0.02)
+    assert m["zeta"] == pytest.approx(zeta, abs=0.01)
+
+
+def test_peak_frequency_magnitude_sees_the_ringing_not_the_step() -> None:
+    ringing = step_metrics(*second_order_step(0.13), 1e-3)["Mf_um"]
+    smooth = step_metrics(*second_order_step(0.95), 1e-3)["Mf_um"]
+    assert ringing > 20 * smooth
+
+
+def test_no_overshoot_is_critically_damped_or_more() -> None:
+    assert damping_from_overshoot(0.0) == 1.0
+    assert damping_from_overshoot(65.88) == pytest.approx(0.132, abs=0.002)  # Table IV's y, open loop
