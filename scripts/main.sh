@@ -1,4 +1,6 @@
 #!/usr/bin/env bash
-# The main job: the simulated estimation demo (see README). Extra arguments go to the demo.
+# The main job: the simulated cell with all nodes, each its own process, and the paper's closed-loop
+# step experiment (Table IV): open vs closed loop, 1 and 2 mm steps on x, y, z and x+y+z. Prints the
+# table and writes the plots and JSON under runs/. Extra arguments go to profile_pose_experiment.
 source "$(dirname "$0")/venv.sh"
-exec "$VENV/bin/profile_pose_demo" "$@"
+exec "$VENV/bin/profile_pose_experiment" --repeats 2 "$@"

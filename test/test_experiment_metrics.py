@@ -32,3 +32,15 @@ def test_peak_frequency_magnitude_sees_the_ringing_not_the_step() -> None:
 def test_no_overshoot_is_critically_damped_or_more() -> None:
     assert damping_from_overshoot(0.0) == 1.0
     assert damping_from_overshoot(65.88) == pytest.approx(0.132, abs=0.002)  # Table IV's y, open loop
+
+
+def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
+    """All six processes: the open loop rings like the paper's arm; the closed loop overshoots less."""
+    from profile_pose_ros.tools.experiment import run
+
+    result = run(83.333, repeats=1, sizes=[1.0], axes=["z"], noise=5e-6, out=tmp_path)
+    by_mode = {r["mode"]: r for r in result["runs"]}
+    open_loop, closed_loop = by_mode["open"]["estimate"], by_mode["closed"]["estimate"]
+    assert open_loop["Mp"] == pytest.approx(13.98, rel=0.2)  # Table IV, z 1 mm, open loop
+    assert closed_loop["Mp"] < 0.5 * open_loop["Mp"]
+    assert by_mode["closed"]["truth"]["y"][-1] == pytest.approx(1e-3, abs=5e-5)  # it got there, really
