@@ -25,7 +25,7 @@ from .run import run_node
 NODE_NAME = "pd_compensator"
 
 PARAMETERS = [
-    Param("kp", [4.0, 8.0, 4.0, 5.0, 5.0, 5.0], "Proportional gain per axis x y z rx ry rz (1/s): velocity "
+    Param("kp", [4.0, 4.0, 4.0, 5.0, 5.0, 5.0], "Proportional gain per axis x y z rx ry rz (1/s): velocity "
           "commanded per unit of pose error."),
     Param("kd", [-0.2, -0.3, -0.2, 0.0, 0.0, 0.0], "Derivative gain per axis (dimensionless): velocity commanded "
           "per unit of the arm's filtered velocity, subtracted."),
@@ -33,7 +33,7 @@ PARAMETERS = [
     Param("gauge_in_base", [0.0] * 6, "Pose of the gauge frame G in the robot base frame: x y z (m), rotation "
           "vector (rad). Corrections act at the profiler origin: set the controller's tool to the profiler "
           "frame.", read_only=True),
-    Param("acceleration_psd", [20.0, 20.0, 20.0, 2.0, 2.0, 2.0], "Kalman filter process noise per axis "
+    Param("acceleration_psd", [20.0, 0.5, 20.0, 2.0, 2.0, 2.0], "Kalman filter process noise per axis "
           "((m/s^2)^2/Hz): larger follows faster motion, smaller averages more noise.", read_only=True),
     Param("use_covariance", True, "Weight each pose by its published covariance (else by measurement_std)."),
     Param("measurement_std", 5e-5, "Pose noise assumed when use_covariance is false (m; rad the same number).",
