@@ -137,7 +137,9 @@ class SimCellNode(Node):
         self.get_logger().info(f"profiler on tcp://{profiler.server.host}:{profiler.port}, trigger MCU on {mcu.url}, "
                                f"{clock}, gauge '{self.gauge.name}'")
 
-    def _apply_faults(self, v: dict) -> None:
+    def _apply_faults(self, v: dict, changed: set[str] | None = None) -> None:
+        """Faults and noise from parameter values; `changed` (None: all) limits one-shot faults to the
+        parameters actually set, so changing another parameter does not fire them again."""
         f = self.cell.profiler.faults
         f.drop_fraction, f.delay_s = v["drop_fraction"], v["delay_ms"] * 1e-3
         f.corrupt_fraction, f.corrupt_mode = v["corrupt_fraction"], v["corrupt_mode"]
@@ -148,7 +150,8 @@ class SimCellNode(Node):
         if self.robot is not None:
             r = self.robot.faults
             r.state_delay_s, r.state_drop_fraction = v["state_delay_ms"] * 1e-3, v["state_drop_fraction"]
-            r.disconnect_after_periods = v["disconnect_after_periods"]
+            if changed is None or "disconnect_after_periods" in changed:
+                r.disconnect_after_periods = v["disconnect_after_periods"]
             if len(v["program_offset"]) != 6:
                 raise ValueError("program_offset needs six values")
             self.robot.program = np.array(v["program_offset"], dtype=float)
@@ -165,7 +168,7 @@ class SimCellNode(Node):
         if len(values["program_offset"]) != 6:
             return SetParametersResult(successful=False, reason="program_offset needs six values")
         self.values = values
-        self._apply_faults(values)
+        self._apply_faults(values, names)
         if names & _CLOCK and self.robot is None:
             self.cell.run_clock(values["trigger_rate"], values["max_triggers"])
         return SetParametersResult(successful=True)
