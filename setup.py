@@ -13,6 +13,7 @@ EXECUTABLES = {
     "pd_compensator": "profile_pose_ros.nodes.pd_compensator:main",
     "motoplus_bridge": "profile_pose_ros.nodes.motoplus_bridge:main",
     "profile_pose_experiment": "profile_pose_ros.tools.experiment:main",
+    "profile_pose_fuzz": "profile_pose_ros.tools.fuzz:main",
     "profile_pose_demo": "profile_pose_ros.tools.estimation_demo:main",
     "profile_pose_benchmark": "profile_pose_ros.tools.benchmark:main",
     "profile_pose_node_benchmark": "profile_pose_ros.tools.node_benchmark:main",

@@ -88,8 +88,9 @@ def decode_profile(*, width: int, height: int, fields: Sequence[Field], is_bigen
     if infinite.any():
         raise ProfileFormatError(f"{int(infinite.sum())} points are +-inf; invalid points must be NaN")
     points = np.empty((width, 2))
-    np.add(x, 0.0 * z, out=points[:, 0])  # a point is invalid if either coordinate is NaN: 0 * NaN = NaN,
-    np.add(z, 0.0 * x, out=points[:, 1])  # and no inf is left to make 0 * inf = NaN by accident
+    with np.errstate(invalid="ignore"):  # signalling NaNs (any bit pattern can arrive) are still NaN
+        np.add(x, 0.0 * z, out=points[:, 0])  # a point is invalid if either coordinate is NaN: 0 * NaN = NaN,
+        np.add(z, 0.0 * x, out=points[:, 1])  # and no inf is left to make 0 * inf = NaN by accident
     if np.isnan(points[:, 0]).all():
         raise ProfileFormatError(f"all {width} points are invalid (NaN)")
     return points
