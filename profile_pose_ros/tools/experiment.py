@@ -95,6 +95,7 @@ class Experiment:
         self.reference_pub = node.create_publisher(PoseStamped, "reference_pose", 10)
         self.home: tuple[np.ndarray, np.ndarray] | None = None
         self.last_rotation = np.eye(3)
+        self._services: dict = {}
 
     def _on_pose(self, msg) -> None:
         self.poses.append(self._sample(msg))
@@ -132,17 +133,22 @@ class Experiment:
     def set_program(self, offset: np.ndarray) -> None:
         self.graph.set_parameters("sim_cell", {"program_offset": [float(v) for v in offset] + [0.0, 0.0, 0.0]})
 
-    def bridge(self, arm: bool) -> None:
+    def bridge(self, arm: bool, attempts: int = 3) -> None:
+        """~/start or ~/stop, retried: a service reply can be lost while the graph is busy."""
         from std_srvs.srv import Trigger
 
-        client = self.graph.node.create_client(Trigger, f"/motoplus_bridge/{'start' if arm else 'stop'}")
+        name = "start" if arm else "stop"
+        if name not in self._services:
+            self._services[name] = self.graph.node.create_client(Trigger, f"/motoplus_bridge/{name}")
+        client = self._services[name]
         if not client.wait_for_service(timeout_sec=10.0):
             raise RuntimeError("motoplus_bridge's services are not available")
-        future = client.call_async(Trigger.Request())
-        self.graph.spin_until(future.done, 10.0)
-        self.graph.node.destroy_client(client)
-        if arm and not self.graph.spin_until(lambda: self.value("motoplus_bridge", "state") == "armed", 10.0):
-            raise RuntimeError(f"the bridge did not arm: {self.value('motoplus_bridge', 'last_error')}")
+        wanted = (lambda: self.value("motoplus_bridge", "state") == "armed") if arm else (lambda: True)
+        for _ in range(attempts):
+            future = client.call_async(Trigger.Request())
+            if self.graph.spin_until(lambda: future.done() and wanted(), 5.0):
+                return
+        raise RuntimeError(f"motoplus_bridge did not {name}: {self.value('motoplus_bridge', 'last_error')}")
 
     def step(self, closed: bool, direction: np.ndarray, size: float) -> dict:
         """One step and its return; the response along `direction`, from the estimate and the truth."""
