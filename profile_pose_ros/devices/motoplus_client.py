@@ -56,7 +56,6 @@ class MotoPlusClient:
         self.last_state: mp.State | None = None
         self.last_state_time = 0.0
         self.counters = BridgeCounters()
-        self.sent_log: list[tuple[float, tuple[int, ...]]] = []  # (host time, increment) of the last sends
         self._seq = 0
         self._peer_seq = 0
         self._sock: socket.socket | None = None
@@ -174,8 +173,6 @@ class MotoPlusClient:
             self.counters.clamped += int(cut)
         self._send(mp.Correction(units, self.limits.frame))
         self.counters.corrections += 1
-        self.sent_log.append((time.time(), units))
-        del self.sent_log[:-1000]
 
     def _send(self, body: mp.Body) -> bool:
         with self._send_lock:

@@ -56,7 +56,6 @@ class ProfilerLink:
         self.counters = LinkCounters()
         self.state = CONNECTING
         self.last_error = ""
-        self.last_frame_time = 0.0  # monotonic
         self.matcher = TriggerMatcher()
         self._cond = threading.Condition()
         self._last_count: int | None = None
@@ -180,7 +179,6 @@ class ProfilerLink:
     def _frame(self, frame: ProfileFrame, arrival: float) -> None:
         c = self.counters
         c.frames += 1
-        self.last_frame_time = time.monotonic()
         if self._last_count is not None:  # across reconnects too: frames missed while away are lost
             gap = (frame.trigger_count - self._last_count - 1) & 0xFFFFFFFF
             if gap < 0x80000000:

@@ -194,14 +194,13 @@ class TriggerLink:
             ping_sent = self._pings.popleft()
             self._round_trips.append(sent_at - ping_sent - self._transmission(len("PING\n")))
         if isinstance(message, (Trigger, Pong)):
-            self._clock_sample(message.micros, sent_at)
+            device_s = self._clock_sample(message.micros, sent_at)
         if isinstance(message, Trigger):
             self.triggers += 1
             if self._last_seq is not None and message.seq > self._last_seq + 1:
                 self.triggers_lost += message.seq - self._last_seq - 1
             self._last_seq = message.seq
-            host = self.clock.to_host(self._unwrap_micros(message.micros)) - self.latency
-            self.on_trigger(message.seq, host)
+            self.on_trigger(message.seq, self.clock.to_host(device_s) - self.latency)
         elif isinstance(message, Ack):
             self._acks.setdefault(message.command, threading.Event()).set()
         elif isinstance(message, Ready):
@@ -232,10 +231,8 @@ class TriggerLink:
         """Shortest recent PING -> PONG time net of transmission (s): an upper bound on each way's latency."""
         return min(self._round_trips) if self._round_trips else float("nan")
 
-    def _unwrap_micros(self, micros: int) -> float:
-        return self._unwrap(micros) * 1e-6
-
-    def _clock_sample(self, micros: int, sent_at: float) -> None:
+    def _clock_sample(self, micros: int, sent_at: float) -> float:
+        """Feed the clock map; returns the line's MCU time in seconds (unwrapped)."""
         last = self._last_micros
         if last is not None and 1_000_000 < last - micros < MICROS_WRAP // 2:
             # back by over a second without wrapping: the MCU restarted (lines can be a few us out of
@@ -243,7 +240,9 @@ class TriggerLink:
             self._unwrap.reset()
             self.clock.reset()
         self._last_micros = micros
-        self.clock.add(self._unwrap_micros(micros), sent_at)
+        device_s = self._unwrap(micros) * 1e-6
+        self.clock.add(device_s, sent_at)
+        return device_s
 
     def stop(self) -> None:
         self._stop.set()

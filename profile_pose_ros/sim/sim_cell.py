@@ -16,7 +16,7 @@ from ..core.gauge import Gauge, GaugeError
 from ..core.render import DEFAULT_PROFILER
 from ..nodes.diagnostics import OK, WARN, diagnostic_array
 from ..nodes.messages import pose_stamped
-from ..nodes.parameters import Param, declare_all
+from ..nodes.parameters import Param, declare_all, updated
 from ..nodes.run import run_node
 from ..resources import DEFAULT_GAUGE, config_path
 from .cell import SensorNoise, SimCell, Truth
@@ -88,6 +88,14 @@ _CLOCK = {"trigger_rate", "max_triggers"}
 _ROBOT = {"program_offset", "state_delay_ms", "state_drop_fraction", "disconnect_after_periods"}
 
 
+def check_values(values: dict) -> None:
+    """The rules the descriptors cannot state; raises ValueError naming the parameter."""
+    if values["corrupt_mode"] not in CORRUPT_MODES + ("mixed",):
+        raise ValueError(f"corrupt_mode {values['corrupt_mode']!r} is not one of {CORRUPT_MODES + ('mixed',)}")
+    if len(values["program_offset"]) != 6:
+        raise ValueError("program_offset needs six values")
+
+
 def motion_from(values: dict) -> ScriptedMotion:
     rotation, translation = pose_from_vector(np.array(values["profiler_pose"], float))
     axes = [a for a in values["step_axes"]]
@@ -105,8 +113,7 @@ class SimCellNode(Node):
         gauge_file = v["gauge_file"] or str(config_path(DEFAULT_GAUGE))
         self.gauge = Gauge.from_yaml(gauge_file)
         motion = motion_from(v)  # ValueError: main() reports it
-        if v["corrupt_mode"] not in CORRUPT_MODES + ("mixed",):
-            raise ValueError(f"corrupt_mode {v['corrupt_mode']!r} is not one of {CORRUPT_MODES + ('mixed',)}")
+        check_values(v)
         profiler = ProfilerDevice(v["host"], v["profiler_port"], faults=ProfilerFaults(), seed=v["seed"])
         mcu = TriggerMcu(v["host"], v["mcu_port"], baudrate=v["mcu_baudrate"], drift_ppm=v["mcu_drift_ppm"],
                          micros_start=v["mcu_micros_start"], faults=McuFaults(), seed=v["seed"] + 1)
@@ -152,21 +159,17 @@ class SimCellNode(Node):
             r.state_delay_s, r.state_drop_fraction = v["state_delay_ms"] * 1e-3, v["state_drop_fraction"]
             if changed is None or "disconnect_after_periods" in changed:
                 r.disconnect_after_periods = v["disconnect_after_periods"]
-            if len(v["program_offset"]) != 6:
-                raise ValueError("program_offset needs six values")
             self.robot.program = np.array(v["program_offset"], dtype=float)
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
-        values = dict(self.values)
-        values.update({p.name: p.value for p in parameters})
-        if values["corrupt_mode"] not in CORRUPT_MODES + ("mixed",):
-            return SetParametersResult(successful=False, reason=f"unknown corrupt_mode {values['corrupt_mode']!r}")
         names = {p.name for p in parameters}
         if names - _FAULTS - _CLOCK - _ROBOT:
             return SetParametersResult(successful=False,
                                        reason="only faults, noise, the clock and the program change at run time")
-        if len(values["program_offset"]) != 6:
-            return SetParametersResult(successful=False, reason="program_offset needs six values")
+        try:
+            values, _ = updated(self.values, parameters, check_values)
+        except ValueError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
         self.values = values
         self._apply_faults(values, names)
         if names & _CLOCK and self.robot is None:

@@ -94,17 +94,17 @@ class Experiment:
         node.create_subscription(PoseStamped, "/sim/ground_truth", lambda m: self.truth.append(self._sample(m)), 1000)
         self.reference_pub = node.create_publisher(PoseStamped, "reference_pose", 10)
         self.home: tuple[np.ndarray, np.ndarray] | None = None
-        self.last_rotation = np.eye(3)
+        self.last_pose = None  # the newest estimated Pose: home's orientation
         self._services: dict = {}
 
     def _on_pose(self, msg) -> None:
         self.poses.append(self._sample(msg))
-        self.last_rotation = rotation_translation(msg.pose)[0]
+        self.last_pose = msg.pose
 
     @staticmethod
     def _sample(msg) -> tuple[float, np.ndarray]:
-        rotation, translation = rotation_translation(msg.pose)
-        return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, translation
+        p = msg.pose.position
+        return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, np.array([p.x, p.y, p.z])
 
     @property
     def diagnostics(self) -> dict:
@@ -122,7 +122,7 @@ class Experiment:
             raise RuntimeError(f"no poses from the graph; see {self.graph.log_dir}")
         self.wait(1.0)
         recent = [p for _, p in self.poses[-int(0.5 / self.period):]]
-        self.home = (self.last_rotation, np.mean(recent, axis=0))
+        self.home = (rotation_translation(self.last_pose)[0], np.mean(recent, axis=0))
         self.reference(np.zeros(3))
 
     def reference(self, offset: np.ndarray) -> None:
@@ -152,14 +152,14 @@ class Experiment:
 
     def step(self, closed: bool, direction: np.ndarray, size: float) -> dict:
         """One step and its return; the response along `direction`, from the estimate and the truth."""
-        offset = direction / np.linalg.norm(direction) * size if len(direction) else direction
+        unit = direction / np.linalg.norm(direction)
+        command = self.reference if closed else self.set_program
         self.wait(BEFORE_S)
         start = time.time()
-        (self.reference if closed else self.set_program)(offset)
+        command(unit * size)
         self.wait(RECORD_S)
-        (self.reference if closed else self.set_program)(np.zeros(3))
+        command(np.zeros(3))
         self.wait(SETTLE_S)
-        unit = direction / np.linalg.norm(direction)
         out = {}
         for name, series in (("estimate", self.poses), ("truth", self.truth)):
             t = np.array([s for s, _ in series])

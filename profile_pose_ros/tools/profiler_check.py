@@ -55,7 +55,6 @@ class CheckRun:
         if watch_profiles:  # else the poses' stamps (copied from their profiles) stand for them: less load
             node.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data, raw=True)
         node.create_subscription(PoseStamped, "pose", self._on_pose, 5000)
-        self.seed = seed
         self.baseline: dict[str, int] = {}
 
     def _on_truth(self, msg) -> None:
