@@ -8,7 +8,6 @@ nothing; a fault or a lost session disarms until ~/start; STOP goes out on every
 """
 from __future__ import annotations
 
-import signal
 import sys
 import threading
 import time
@@ -155,13 +154,8 @@ class MotoPlusBridgeNode(Node):
         super().destroy_node()
 
 
-def _interrupt(*_) -> None:
-    raise KeyboardInterrupt
-
-
 def main(args=None) -> int:
-    signal.signal(signal.SIGTERM, _interrupt)  # a process manager's stop takes Ctrl-C's path: STOP, then exit
-    return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,))
+    return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,), sigterm_as_interrupt=True)
 
 
 if __name__ == "__main__":

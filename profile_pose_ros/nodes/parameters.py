@@ -6,7 +6,9 @@ from dataclasses import dataclass
 from typing import Any, Callable, TypeVar
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 T = TypeVar("T")
 
@@ -32,10 +34,17 @@ class Param:
 
 
 def declare_all(node: Node, params: list[Param]) -> dict[str, Any]:
-    """Declare every parameter and return their (possibly overridden) values by name."""
+    """Declare every parameter and return their (possibly overridden) values by name. An empty list
+    default declares a string array (rclpy would guess a byte array) that is unset until given."""
+    values = {}
     for p in params:
-        node.declare_parameter(p.name, p.default, p.descriptor())
-    return {p.name: node.get_parameter(p.name).value for p in params}
+        default = Parameter.Type.STRING_ARRAY if isinstance(p.default, list) and not p.default else p.default
+        node.declare_parameter(p.name, default, p.descriptor())
+        try:
+            values[p.name] = node.get_parameter(p.name).value
+        except ParameterUninitializedException:
+            values[p.name] = []
+    return values
 
 
 def updated(current: dict, parameters, build: Callable[[dict], T]) -> tuple[dict, T]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import dataclass
 import threading
 import time
 
@@ -76,6 +77,31 @@ def options_from(values: dict) -> EstimatorOptions:
     """EstimatorOptions from parameter values; raises ValueError for an invalid combination."""
     changes = {option: values[name] for name, option in _OPTION_OF_PARAMETER.items() if name in values}
     return EstimatorOptions().with_changes(**changes)
+
+
+@dataclass
+class ProfileResult:
+    reason: str = ""  # why no pose; empty when there is one
+    pose: PoseStamped | None = None
+    pose_with_covariance: PoseWithCovarianceStamped | None = None
+    reprojection_error: float | None = None
+
+
+def poses_from_profile(msg: PointCloud2, gauge: Gauge, options: EstimatorOptions, profiler_frame: str,
+                       gauge_frame: str) -> ProfileResult:
+    """The node's whole computation for one profile, without the node: profile_pose_replay runs exactly
+    this on recorded profiles, so a replay reproduces the published poses bit for bit."""
+    if profiler_frame and msg.header.frame_id != profiler_frame:
+        return ProfileResult(f"profile frame_id '{msg.header.frame_id}' is not '{profiler_frame}'")
+    try:
+        points = points_from_cloud(msg)
+    except ProfileFormatError as exc:
+        return ProfileResult(f"bad profile: {exc}")
+    estimate = estimate_pose(points, gauge, options)
+    if not estimate.ok:
+        return ProfileResult(estimate.reason, reprojection_error=estimate.reprojection_error)
+    pose = pose_stamped(estimate.R, estimate.t, msg.header.stamp, gauge_frame)
+    return ProfileResult("", pose, pose_with_covariance(pose, estimate.covariance), estimate.reprojection_error)
 
 
 class PoseEstimatorNode(Node):
@@ -166,21 +192,14 @@ class PoseEstimatorNode(Node):
 
 
     def _estimate_and_publish(self, msg: PointCloud2) -> str:
-        expected = self.values["profiler_frame"]
-        if expected and msg.header.frame_id != expected:
-            return f"profile frame_id '{msg.header.frame_id}' is not '{expected}'"
-        try:
-            points = points_from_cloud(msg)
-        except ProfileFormatError as exc:
-            return f"bad profile: {exc}"
-        estimate = estimate_pose(points, self.gauge, self.options)
-        self.last_reprojection_error = estimate.reprojection_error
-        if not estimate.ok:
-            return estimate.reason
-        frame = self.values["gauge_frame"]
-        pose = pose_stamped(estimate.R, estimate.t, msg.header.stamp, frame)
-        self.pose_pub.publish(pose)
-        self.covariance_pub.publish(pose_with_covariance(pose, estimate.covariance))
+        result = poses_from_profile(msg, self.gauge, self.options, self.values["profiler_frame"],
+                                    self.values["gauge_frame"])
+        if result.reprojection_error is not None:
+            self.last_reprojection_error = result.reprojection_error
+        if result.reason:
+            return result.reason
+        self.pose_pub.publish(result.pose)
+        self.covariance_pub.publish(result.pose_with_covariance)
         self.published += 1
         return ""
 

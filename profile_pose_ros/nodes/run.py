@@ -2,6 +2,7 @@
 not a traceback), spin until Ctrl-C or shutdown, and always destroy the node and shut rclpy down."""
 from __future__ import annotations
 
+import signal
 import sys
 from typing import Callable
 
@@ -12,7 +13,12 @@ from rclpy.node import Node
 
 def run_node(factory: Callable[[], Node], name: str, args=None,
              startup_errors: tuple[type[BaseException], ...] = (ValueError,),
-             spin: Callable[[SingleThreadedExecutor, Node], None] | None = None) -> int:
+             spin: Callable[[SingleThreadedExecutor, Node], None] | None = None,
+             sigterm_as_interrupt: bool = False) -> int:
+    """sigterm_as_interrupt: a process manager's SIGTERM takes Ctrl-C's path, for nodes whose shutdown
+    must run (the bridge's STOP, the recorder closing its bag)."""
+    if sigterm_as_interrupt:
+        signal.signal(signal.SIGTERM, _interrupt)
     rclpy.init(args=args)
     try:
         node = factory()
@@ -34,3 +40,7 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def _interrupt(*_) -> None:
+    raise KeyboardInterrupt

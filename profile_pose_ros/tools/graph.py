@@ -16,6 +16,8 @@ MODULES = {
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator",
     "pd_compensator": "profile_pose_ros.nodes.pd_compensator",
     "motoplus_bridge": "profile_pose_ros.nodes.motoplus_bridge",
+    "bag_recorder": "profile_pose_ros.nodes.bag_recorder",
+    "bag_player": "profile_pose_ros.nodes.bag_player",
 }
 
 
