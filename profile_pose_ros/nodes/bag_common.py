@@ -38,11 +38,11 @@ def from_bag_qos(offered: list[Qos] | tuple[Qos, ...], depth: int) -> QoSProfile
     if offered:
         first = offered[0]
         if first.reliability in (QosReliability.RELIABLE, QosReliability.BEST_EFFORT):
-            profile.reliability = ReliabilityPolicy(int(first.reliability))
+            profile.reliability = ReliabilityPolicy(first.reliability.value)
         if first.durability in (QosDurability.TRANSIENT_LOCAL, QosDurability.VOLATILE):
-            profile.durability = DurabilityPolicy(int(first.durability))
+            profile.durability = DurabilityPolicy(first.durability.value)
         if first.liveliness in (QosLiveliness.AUTOMATIC, QosLiveliness.MANUAL_BY_TOPIC):
-            profile.liveliness = LivelinessPolicy(int(first.liveliness))
+            profile.liveliness = LivelinessPolicy(first.liveliness.value)
     return profile
 
 

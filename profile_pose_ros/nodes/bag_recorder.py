@@ -58,6 +58,7 @@ class BagRecorderNode(Node):
         self.subscriptions_by_topic: dict[str, object] = {}
         self.refused: dict[str, str] = {}  # topic -> why it is not recorded
         self.received = 0
+        self.flushed = 0  # messages on disk as of the last flush: what a kill cannot take
         self.last_error = ""
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(v["discovery_period"], self._discover)
@@ -105,6 +106,7 @@ class BagRecorderNode(Node):
     def _flush(self) -> None:
         try:
             self.writer.flush()
+            self.flushed = self.received
         except OSError as exc:
             self.last_error = str(exc)
             self.get_logger().error(f"flush failed: {exc}", throttle_duration_sec=1.0)
@@ -116,7 +118,8 @@ class BagRecorderNode(Node):
             level, message = WARN, "no topic to record yet"
         else:
             level, message = OK, f"recording {len(self.subscriptions_by_topic)} topics"
-        values = {"bag": str(self.writer.path), "messages": self.received, "topics": len(self.subscriptions_by_topic),
+        values = {"bag": str(self.writer.path), "messages": self.received, "messages_flushed": self.flushed,
+                  "topics": len(self.subscriptions_by_topic),
                   "splits_closed": self.writer.splits_closed, "not_recorded": "; ".join(
                       f"{t}: {r}" for t, r in self.refused.items()) or "none"}
         self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: recording",
@@ -124,7 +127,7 @@ class BagRecorderNode(Node):
 
     def destroy_node(self) -> None:
         self.writer.close()  # on every shutdown path: the bag is complete
-        self.get_logger().info(f"closed {self.writer.path}: {self.received} messages")
+        print(f"[bag_recorder] closed {self.writer.path}: {self.received} messages", file=sys.stderr)
         super().destroy_node()
 
 
