@@ -54,7 +54,7 @@ def test_recorded_profiles_replay_to_the_recorded_poses_bit_for_bit(tmp_path) ->
 
     # offline, with the live node's parameters: identical; with others: different, and says how much
     report = replay(recorded, estimator_values(None, {"refine_model": "dense"}))
-    assert report["identical"] == report["recorded_poses"] == len(recorded_poses) and report["different"] == 0
+    assert report["identical"] == report["recorded_poses"] == len(recorded_poses) and report["different"] == 0, report
     assert report["recorded_error_position_um"]["median"] < 200  # sanity: real poses of the moving profiler
     other = replay(recorded, estimator_values(None, parse_overrides(["refine_model:=corners"])))
     assert other["different"] > 0.9 * other["compared"] and other["difference_position_um"]["median"] > 0.01

@@ -124,7 +124,7 @@ class BagPlayerNode(Node):
 
 def main(args=None) -> int:
     return run_node(BagPlayerNode, NODE_NAME, args, startup_errors=(BagError, ValueError),
-                    sigterm_as_interrupt=True)
+                    graceful=True)
 
 
 if __name__ == "__main__":

@@ -125,7 +125,19 @@ class BagRecorderNode(Node):
         self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: recording",
                                                       str(Path(self.writer.path).name), level, message, values))
 
+    def drain(self) -> int:
+        """Write what the subscriptions still hold (taken but not yet handled by the executor)."""
+        drained = 0
+        for topic, subscription in self.subscriptions_by_topic.items():
+            with subscription.handle:
+                while (taken := subscription.handle.take_message(subscription.msg_type, True)) is not None:
+                    self._on_message(topic, taken[0])
+                    drained += 1
+        return drained
+
     def destroy_node(self) -> None:
+        if self.context.ok():
+            self.drain()
         self.writer.close()  # on every shutdown path: the bag is complete
         print(f"[bag_recorder] closed {self.writer.path}: {self.received} messages", file=sys.stderr)
         super().destroy_node()
@@ -133,7 +145,7 @@ class BagRecorderNode(Node):
 
 def main(args=None) -> int:
     return run_node(BagRecorderNode, NODE_NAME, args, startup_errors=(BagError, ValueError),
-                    sigterm_as_interrupt=True)
+                    graceful=True)
 
 
 if __name__ == "__main__":

@@ -155,7 +155,7 @@ class MotoPlusBridgeNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,), sigterm_as_interrupt=True)
+    return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,), graceful=True)
 
 
 if __name__ == "__main__":

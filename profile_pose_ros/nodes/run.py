@@ -4,22 +4,27 @@ from __future__ import annotations
 
 import signal
 import sys
+import threading
 from typing import Callable
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 
 
 def run_node(factory: Callable[[], Node], name: str, args=None,
              startup_errors: tuple[type[BaseException], ...] = (ValueError,),
              spin: Callable[[SingleThreadedExecutor, Node], None] | None = None,
-             sigterm_as_interrupt: bool = False) -> int:
-    """sigterm_as_interrupt: a process manager's SIGTERM takes Ctrl-C's path, for nodes whose shutdown
-    must run (the bridge's STOP, the recorder closing its bag)."""
-    if sigterm_as_interrupt:
-        signal.signal(signal.SIGTERM, _interrupt)
-    rclpy.init(args=args)
+             graceful: bool = False) -> int:
+    """graceful: Ctrl-C and SIGTERM (a process manager's stop) only ask the spin loop to end, so no
+    callback is cut short and destroy_node() still has a live context, for nodes whose shutdown must
+    run whole (the bridge's STOP, the recorder draining its queues and closing its bag)."""
+    stop = threading.Event()
+    if graceful:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, lambda *_: stop.set())
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO if graceful else None)
     try:
         node = factory()
     except startup_errors as exc:
@@ -29,10 +34,13 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
-        if spin is None:
-            executor.spin()
-        else:
+        if spin is not None:
             spin(executor, node)
+        elif graceful:
+            while not stop.is_set() and executor.context.ok():
+                executor.spin_once(timeout_sec=0.05)
+        else:
+            executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -40,7 +48,3 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
-
-
-def _interrupt(*_) -> None:
-    raise KeyboardInterrupt
