@@ -46,8 +46,11 @@ class BridgeCounters:
 class MotoPlusClient:
     def __init__(self, host: str, port: int, limits: SessionLimits,
                  increment: Callable[[], np.ndarray | None], on_state: Callable[[mp.State, float], None],
-                 log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0) -> None:
+                 log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0,
+                 on_sent: Callable[[tuple[int, ...], float], None] | None = None) -> None:
+        """on_sent(units, wall time just after the send): each CORRECTION as it left, for latency records."""
         self.host, self.port, self.limits = host, port, limits
+        self.on_sent = on_sent
         self.increment, self.on_state, self.log = increment, on_state, log
         self.backoff_min, self.backoff_max = backoff_min, backoff_max
         self.state = DISCONNECTED
@@ -171,7 +174,8 @@ class MotoPlusClient:
         else:
             units, cut = mp.clamp(mp.metres_to_units(step), mp.metres_to_units(self.limits.max_step))
             self.counters.clamped += int(cut)
-        self._send(mp.Correction(units, self.limits.frame))
+        if self._send(mp.Correction(units, self.limits.frame)) and self.on_sent is not None:
+            self.on_sent(units, time.time())
         self.counters.corrections += 1
 
     def _send(self, body: mp.Body) -> bool:

@@ -65,16 +65,20 @@ class MotoPlusBridgeNode(Node):
         self.limits = limits_from(v)
         self._lock = threading.Lock()
         self._velocities: list[np.ndarray] = []  # corrections received since the last increment
-        self._latest: tuple[float, np.ndarray] | None = None  # (stamp s, velocity)
+        self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity)
+        self._used_stamp_ns: int | None = None  # stamp of the newest correction in the increment being sent
+        self._ages: list[float] = []  # trigger-to-send times (s) since the last diagnostics
         self.stale_periods = 0
         self.state_pub = self.create_publisher(PoseStamped, "robot_state", 10)
+        self.increment_pub = self.create_publisher(TwistStamped, "~/increment", 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(TwistStamped, "correction", self._on_correction, 10)
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/stop", self._on_stop)
         logger = self.get_logger()
         self.client = MotoPlusClient(v["host"], v["port"], self.limits, self._increment, self._on_state,
-                                     log=lambda text: logger.warn(text, throttle_duration_sec=1.0))
+                                     log=lambda text: logger.warn(text, throttle_duration_sec=1.0),
+                                     on_sent=self._on_sent)
         if v["arm_on_start"]:
             self.client.arm()
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
@@ -89,7 +93,7 @@ class MotoPlusBridgeNode(Node):
         if not np.all(np.isfinite(velocity)):
             self.get_logger().error("correction with NaN or inf ignored", throttle_duration_sec=1.0)
             return
-        stamp = Time.from_msg(msg.header.stamp).nanoseconds * 1e-9
+        stamp = Time.from_msg(msg.header.stamp).nanoseconds
         with self._lock:
             self._velocities.append(velocity)
             self._latest = (stamp, velocity)
@@ -100,11 +104,30 @@ class MotoPlusBridgeNode(Node):
         with self._lock:
             received, self._velocities = self._velocities, []
             latest = self._latest
-        if latest is None or time.time() - latest[0] > self.values["max_age"]:
+        if latest is None or time.time() - latest[0] * 1e-9 > self.values["max_age"]:
             self.stale_periods += 1
+            self._used_stamp_ns = None
             return None
+        self._used_stamp_ns = latest[0]
         velocity = np.mean(received, axis=0) if received else latest[1]
         return velocity * self.limits.period_s
+
+    def _on_sent(self, units: tuple[int, ...], sent: float) -> None:
+        """`~/increment`: what went to the controller (m and rad this period, after clamping), stamped with
+        the trigger time of the newest correction in it; its publish time is the send time (+ µs). Zero
+        increments for stale corrections are not published."""
+        stamp_ns = self._used_stamp_ns
+        if stamp_ns is None:
+            return
+        with self._lock:
+            self._ages.append(sent - stamp_ns * 1e-9)
+        step = mp.units_to_metres(units)
+        msg = TwistStamped()
+        msg.header.stamp = Time(nanoseconds=stamp_ns).to_msg()
+        msg.header.frame_id = self.values["base_frame"]
+        (msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z,
+         msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z) = (float(u) for u in step)
+        self.increment_pub.publish(msg)
 
     def _on_state(self, state: mp.State, host_time: float) -> None:
         pose = np.array(mp.units_to_metres(state.pose))
@@ -145,6 +168,12 @@ class MotoPlusBridgeNode(Node):
         if c.last_state is not None:
             values.update({"controller_status": c.last_state.status, "echoed_seq": c.last_state.echoed_seq,
                            "total_offset_um": list(c.last_state.offset[:3])})
+        with self._lock:
+            ages, self._ages = np.array(self._ages) * 1e3, []
+        if len(ages):
+            values.update({"trigger_to_send_ms_median": float(np.median(ages)),
+                           "trigger_to_send_ms_p99": float(np.percentile(ages, 99)),
+                           "trigger_to_send_ms_max": float(ages.max())})
         self.stale_periods = 0
         self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: robot",
                                                       f"tcp://{c.host}:{c.port}", level, message, values))

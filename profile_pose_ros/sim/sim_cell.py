@@ -64,8 +64,10 @@ PARAMETERS = [
     Param("mcu_drift_ppm", 300.0, "MCU clock error (ppm).", -10000.0, 10000.0, read_only=True),
     Param("mcu_micros_start", 0, "MCU micros() at each boot (to exercise the 32-bit wrap).", 0, 2 ** 32 - 1,
           read_only=True),
-    Param("robot_enabled", True, "Simulate the robot controller (MotoPlus protocol on robot_port); its period "
-          "then triggers the profiler and trigger_rate is not used.", read_only=True),
+    Param("robot_enabled", True, "Simulate the robot controller (MotoPlus protocol on robot_port).", read_only=True),
+    Param("profiler_trigger", "robot", "What triggers the profiler when the robot is simulated: 'robot' (its "
+          "per-period output, the paper's cell) or 'clock' (trigger_rate, e.g. a 1 kHz profiler beside a 250 Hz "
+          "controller).", read_only=True),
     Param("robot_port", 11000, "Robot controller port (0: any free port).", 0, 65535, read_only=True),
     Param("control_period", 0.012, "Controller period (s): 0.012 (83.3 Hz) or 0.004 (250 Hz).", 0.004, 0.1,
           read_only=True),
@@ -90,6 +92,8 @@ _ROBOT = {"program_offset", "state_delay_ms", "state_drop_fraction", "disconnect
 
 def check_values(values: dict) -> None:
     """The rules the descriptors cannot state; raises ValueError naming the parameter."""
+    if values["profiler_trigger"] not in ("robot", "clock"):
+        raise ValueError(f"profiler_trigger must be 'robot' or 'clock', not {values['profiler_trigger']!r}")
     if values["corrupt_mode"] not in CORRUPT_MODES + ("mixed",):
         raise ValueError(f"corrupt_mode {values['corrupt_mode']!r} is not one of {CORRUPT_MODES + ('mixed',)}")
     if len(values["program_offset"]) != 6:
@@ -127,7 +131,8 @@ class SimCellNode(Node):
             ticks = int(round(v["control_period"] / TICK_S))
             if abs(ticks * TICK_S - v["control_period"]) > 1e-9:
                 raise ValueError(f"control_period {v['control_period']} is not a multiple of the 4 ms clock")
-            self.robot = RobotController(arm, self.cell.robot_signal, v["host"], v["robot_port"], ticks,
+            on_period = self.cell.robot_signal if v["profiler_trigger"] == "robot" else None
+            self.robot = RobotController(arm, on_period, v["host"], v["robot_port"], ticks,
                                          ControllerFaults(), seed=v["seed"] + 3)
         self._apply_faults(v)
         self.truth_pub = self.create_publisher(PoseStamped, "/sim/ground_truth", 100)
@@ -136,13 +141,18 @@ class SimCellNode(Node):
         self.cell.start()
         if self.robot is not None:
             self.robot.start()
-        elif v["trigger_rate"] > 0:
+        if self._clock_triggers(v) and v["trigger_rate"] > 0:
             self.cell.run_clock(v["trigger_rate"], v["max_triggers"])
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
-        clock = (f"robot controller on tcp://{v['host']}:{self.robot.port}, {1 / v['control_period']:.1f} Hz"
-                 if self.robot is not None else f"internal trigger clock {v['trigger_rate']:.3f} Hz")
+        clock = (f"robot controller on tcp://{v['host']}:{self.robot.port}, {1 / v['control_period']:.1f} Hz; "
+                 if self.robot is not None else "")
+        clock += (f"internal trigger clock {v['trigger_rate']:.3f} Hz" if self._clock_triggers(v)
+                  else "the controller triggers the profiler")
         self.get_logger().info(f"profiler on tcp://{profiler.server.host}:{profiler.port}, trigger MCU on {mcu.url}, "
                                f"{clock}, gauge '{self.gauge.name}'")
+
+    def _clock_triggers(self, v: dict) -> bool:
+        return self.robot is None or v["profiler_trigger"] == "clock"
 
     def _apply_faults(self, v: dict, changed: set[str] | None = None) -> None:
         """Faults and noise from parameter values; `changed` (None: all) limits one-shot faults to the
@@ -172,7 +182,7 @@ class SimCellNode(Node):
             return SetParametersResult(successful=False, reason=str(exc))
         self.values = values
         self._apply_faults(values, names)
-        if names & _CLOCK and self.robot is None:
+        if names & _CLOCK and self._clock_triggers(values):
             self.cell.run_clock(values["trigger_rate"], values["max_triggers"])
         return SetParametersResult(successful=True)
 

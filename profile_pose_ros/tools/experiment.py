@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -72,18 +73,26 @@ def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.nd
 
 class Experiment:
     def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0,
-                 compensator: dict | None = None, refine_model: str = "dense") -> None:
+                 compensator: dict | None = None, refine_model: str = "dense", profile_rate_hz: float | None = None,
+                 bag: Path | None = None) -> None:
+        """rate_hz: the controller's (83.333 or 250), which also triggers the profiler unless
+        profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there."""
         from geometry_msgs.msg import PoseStamped
 
         self.graph, self.rate_hz = graph, rate_hz
         period = 0.012 if rate_hz < 200 else 0.004
         self.period = period
+        if bag is not None:  # first, so that it has subscribed before the others publish
+            graph.start("bag_recorder", {"output": str(bag), "compression": "zstd", "diagnostics_period": 0.5})
         profiler_port, mcu_port, robot_port = free_port(), free_port(), free_port()
-        graph.start("sim_cell", {"profiler_port": profiler_port, "mcu_port": mcu_port, "robot_port": robot_port,
-                                 "control_period": period, "noise_std": noise_std, "seed": seed,
-                                 "diagnostics_period": 0.5})
-        graph.start("profiler_driver", {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}",
-                                        "diagnostics_period": 0.5})
+        sim = {"profiler_port": profiler_port, "mcu_port": mcu_port, "robot_port": robot_port,
+               "control_period": period, "noise_std": noise_std, "seed": seed, "diagnostics_period": 0.5}
+        driver = {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}", "diagnostics_period": 0.5}
+        if profile_rate_hz:
+            sim.update(profiler_trigger="clock", trigger_rate=profile_rate_hz, mcu_baudrate=2_000_000)
+            driver.update(baudrate=2_000_000)
+        graph.start("sim_cell", sim)
+        graph.start("profiler_driver", driver)
         graph.start("pose_estimator", {"diagnostics_period": 0.5, "refine_model": refine_model})
         graph.start("pd_compensator", {"diagnostics_period": 0.5, **(compensator or {})})
         graph.start("motoplus_bridge", {"port": robot_port, "period": period, "diagnostics_period": 0.5})

@@ -1,0 +1,113 @@
+"""profile_pose_latency: the loop's latency budget on the simulated cell, stage by stage.
+
+Every message of the chain carries the profile's trigger time as its stamp (profile -> pose ->
+correction -> the bridge's `~/increment`), and DDS gives each message's publish time (source timestamp),
+so each stage's latency is publish time - trigger time: trigger -> profile published (exposure,
+transfer, driver), -> pose published, -> correction published, -> increment sent to the controller
+(the bridge publishes `~/increment` right after the TCP send). The loop is closed and holding still.
+At 1 kHz the profiler has its own trigger clock beside the 250 Hz controller, as a fast profiler would.
+"""
+from __future__ import annotations
+
+import argparse
+import struct
+import sys
+import time
+
+import numpy as np
+
+from .experiment import Experiment
+from .graph import Graph
+from .processes import cpu_seconds
+from .report import run_dir, summary, table, write_json
+
+STAGES = (("profile", "profile", "sensor_msgs.msg", "PointCloud2"),
+          ("pose", "pose", "geometry_msgs.msg", "PoseStamped"),
+          ("correction", "correction", "geometry_msgs.msg", "TwistStamped"),
+          ("increment sent", "/motoplus_bridge/increment", "geometry_msgs.msg", "TwistStamped"))
+
+
+def header_stamp_ns(cdr: bytes) -> int:
+    """header.stamp of a serialized message whose first field is a std_msgs/Header (little-endian CDR)."""
+    sec, nanosec = struct.unpack_from("<iI", cdr, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float) -> dict:
+    import importlib
+
+    from rclpy.qos import qos_profile_sensor_data
+
+    control_hz = 83.333 if rate_hz < 200 else 250.0
+    graph = Graph(out / f"logs_{rate_hz:g}hz", client_name="profile_pose_latency")
+    latencies: dict[str, list[float]] = {name: [] for name, *_ in STAGES}
+    recording = [False]
+    try:
+        exp = Experiment(graph, control_hz, noise, refine_model=refine_model,
+                         profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None)
+        for name, topic, module, cls in STAGES:
+            def on_message(data, info, name=name) -> None:
+                if recording[0]:
+                    latencies[name].append((info["source_timestamp"] - header_stamp_ns(data)) * 1e-6)
+            qos = qos_profile_sensor_data if name == "profile" else 1000
+            graph.node.create_subscription(getattr(importlib.import_module(module), cls), topic, on_message,
+                                           qos, raw=True)
+        exp.start()
+        exp.bridge(arm=True)
+        exp.wait(1.0)
+        cpu_before = {name: cpu_seconds(p.pid) for name, p in graph.processes.items()}
+        cpu_before["(this client)"] = time.process_time()
+        recording[0] = True
+        for _ in range(int(round(seconds / 0.5))):
+            exp.reference(np.zeros(3))  # again and again: a reference lost before discovery matched would
+            exp.wait(0.5)               # leave the compensator sending zeros
+        recording[0] = False
+        cpu = {name: cpu_seconds(p.pid) for name, p in graph.processes.items()}
+        cpu["(this client)"] = time.process_time()
+        cpu_percent = {name: 100.0 * (cpu[name] - cpu_before[name]) / seconds for name in cpu}
+        diagnostics = {k: dict(v) for k, v in exp.diagnostics.items()}
+        exp.bridge(arm=False)
+    finally:
+        graph.close()
+    return {"rate_hz": rate_hz, "control_hz": control_hz, "seconds": seconds, "refine_model": refine_model,
+            "stages_ms": {name: summary(v) for name, v in latencies.items()}, "cpu_percent": cpu_percent,
+            "diagnostics": diagnostics}
+
+
+def print_table(results: list[dict]) -> None:
+    rows = []
+    for r in results:
+        for name, s in r["stages_ms"].items():
+            if s.get("n"):
+                rows.append((f"{r['rate_hz']:g} Hz", f"trigger -> {name}", str(s["n"]), f"{s['median']:.3f}",
+                             f"{s['p99']:.3f}", f"{s['max']:.3f}"))
+            else:
+                rows.append((f"{r['rate_hz']:g} Hz", f"trigger -> {name}", "0", "-", "-", "-"))
+    print(table(("profile rate", "stage", "messages", "median ms", "p99 ms", "max ms"), rows,
+                "latency from the trigger (stamps) to each stage's publish / send time"))
+    for r in results:
+        print(f"CPU at {r['rate_hz']:g} Hz (% of one core): "
+              + ", ".join(f"{name} {value:.0f}" for name, value in r["cpu_percent"].items()))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rates", type=float, nargs="+", default=[83.333, 1000.0], help="profile rates (Hz)")
+    parser.add_argument("--seconds", type=float, default=20.0, help="measured time per rate")
+    parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
+    parser.add_argument("--noise", type=float, default=5e-6)
+    parser.add_argument("--out", default="runs")
+    args = parser.parse_args(argv)
+    out = run_dir(args.out, "latency")
+    results = []
+    for rate in args.rates:
+        print(f"measuring at {rate:g} Hz for {args.seconds:g} s (logs in {out})", flush=True)
+        results.append(measure(rate, args.seconds, out, args.refine_model, args.noise))
+    print_table(results)
+    write_json(out / "latency.json", {"results": results})
+    print(f"results: {out / 'latency.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
