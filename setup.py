@@ -17,6 +17,7 @@ EXECUTABLES = {
     "profile_pose_bag": "profile_pose_ros.tools.bag_cli:main",
     "profile_pose_replay": "profile_pose_ros.tools.replay:main",
     "profile_pose_latency": "profile_pose_ros.tools.latency:main",
+    "profile_pose_bringup": "profile_pose_ros.tools.bringup:main",
     "profile_pose_experiment": "profile_pose_ros.tools.experiment:main",
     "profile_pose_fuzz": "profile_pose_ros.tools.fuzz:main",
     "profile_pose_demo": "profile_pose_ros.tools.estimation_demo:main",

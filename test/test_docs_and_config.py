@@ -28,3 +28,27 @@ def test_params_file_names_exactly_the_declared_parameters_within_range(module):
 def test_pose_estimator_params_file_is_a_valid_combination():
     values = yaml.safe_load((ROOT / "config" / "pose_estimator.yaml").read_text())["pose_estimator"]["ros__parameters"]
     pose_estimator.options_from(values)
+
+
+@pytest.mark.parametrize("name", ["cell.yaml", "hardware.yaml"])
+def test_cell_parameter_files_are_generated_and_every_block_is_valid(name):
+    from profile_pose_ros.tools import config_files
+
+    text = (ROOT / "config" / name).read_text()
+    assert text == {"cell.yaml": config_files.cell_file, "hardware.yaml": config_files.hardware_file}[name](), (
+        "regenerate: python -m profile_pose_ros.tools.config_files")
+    document = yaml.safe_load(text)
+    assert set(document["/**"]["ros__parameters"]) == set(config_files.FRAMES)
+    modules = {m.NODE_NAME: m for m in node_modules()}
+    blocks = {key.removeprefix("/**/"): block["ros__parameters"] for key, block in document.items() if key != "/**"}
+    assert {"profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge"} <= set(blocks)
+    assert ("sim_cell" in blocks) == (name == "cell.yaml")
+    for node, values in blocks.items():
+        declared = {p.name: p for p in modules[node].PARAMETERS}
+        assert set(values) == set(declared) - set(config_files.FRAMES), node
+        for key, value in values.items():
+            p = declared[key]
+            assert type(value) is type(p.default) or (isinstance(p.default, list) and isinstance(value, list)), key
+            if p.low is not None:
+                assert p.low <= value <= p.high, (node, key)
+    pose_estimator.options_from({**blocks["pose_estimator"], **document["/**"]["ros__parameters"]})

@@ -113,7 +113,7 @@ class BagPlayerNode(Node):
         level, message = (ERROR, self.last_error) if self.last_error else (
             OK, "done" if self.done.is_set() else f"playing (pass {self.passes + 1})")
         values = {"bag": str(self.info.path), "published": self.published, "passes": self.passes}
-        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: playback",
+        self.diagnostics_pub.publish(diagnostic_array(self, "playback",
                                                       self.info.path.name, level, message, values))
 
     def destroy_node(self) -> None:

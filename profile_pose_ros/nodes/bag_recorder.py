@@ -122,7 +122,7 @@ class BagRecorderNode(Node):
                   "topics": len(self.subscriptions_by_topic),
                   "splits_closed": self.writer.splits_closed, "not_recorded": "; ".join(
                       f"{t}: {r}" for t, r in self.refused.items()) or "none"}
-        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: recording",
+        self.diagnostics_pub.publish(diagnostic_array(self, "recording",
                                                       str(Path(self.writer.path).name), level, message, values))
 
     def drain(self) -> int:

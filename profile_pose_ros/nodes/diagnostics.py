@@ -7,7 +7,11 @@ OK, WARN, ERROR, STALE = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticS
 LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
 
 
-def diagnostic_array(stamp, name: str, hardware_id: str, level: int, message: str, values: dict) -> DiagnosticArray:
+def diagnostic_array(node, what: str, hardware_id: str, level: int, message: str, values: dict) -> DiagnosticArray:
+    """Named `<namespace>/<node>: <what>` (no leading slash; just `<node>: <what>` outside a namespace), so
+    several cells on one /diagnostics stay apart."""
+    name = f"{node.get_fully_qualified_name().lstrip('/')}: {what}"
+    stamp = node.get_clock().now().to_msg()
     status = DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id)
     status.values = [KeyValue(key=str(k), value=_text(v)) for k, v in values.items()]
     array = DiagnosticArray()

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from typing import Callable
 
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.callback_groups import CallbackGroup
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.subscription import Subscription
@@ -60,7 +61,12 @@ def spin(executor, fast_input: FastInput, housekeeping_period: float = 0.01) -> 
     context = executor.context
     due = time.monotonic()
     while context.ok():
-        fast_input.pump(max(0.0, due - time.monotonic()))
-        if time.monotonic() >= due:
-            executor.spin_once(timeout_sec=0.0)
-            due = time.monotonic() + housekeeping_period
+        try:
+            fast_input.pump(max(0.0, due - time.monotonic()))
+            if time.monotonic() >= due:
+                executor.spin_once(timeout_sec=0.0)
+                due = time.monotonic() + housekeeping_period
+        except RCLError:
+            if context.ok():
+                raise
+            return  # Ctrl-C shut the context down between the check and the wait: a normal exit

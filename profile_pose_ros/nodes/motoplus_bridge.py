@@ -175,7 +175,7 @@ class MotoPlusBridgeNode(Node):
                            "trigger_to_send_ms_p99": float(np.percentile(ages, 99)),
                            "trigger_to_send_ms_max": float(ages.max())})
         self.stale_periods = 0
-        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: robot",
+        self.diagnostics_pub.publish(diagnostic_array(self, "robot",
                                                       f"tcp://{c.host}:{c.port}", level, message, values))
 
     def destroy_node(self) -> None:

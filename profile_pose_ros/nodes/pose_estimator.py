@@ -229,8 +229,7 @@ class PoseEstimatorNode(Node):
             "mean_processing_ms": 1e3 * w["busy"] / received if received else 0.0,
             "gauge": self.gauge.name, "gauge_file": self.gauge_file,
         }
-        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(),
-                                                      f"{self.get_name()}: pose estimation", self.gauge.name,
+        self.diagnostics_pub.publish(diagnostic_array(self, "pose estimation", self.gauge.name,
                                                       level, message, values))
 
 

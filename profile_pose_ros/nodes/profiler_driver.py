@@ -132,8 +132,7 @@ class ProfilerDriverNode(Node):
                            "fastest_ping_round_trip_us": trigger.fastest_round_trip * 1e6,
                            "kernel_timestamps": trigger.kernel_timestamps,
                            "sync_jitter_median_us": jitter_median * 1e6, "sync_jitter_max_us": jitter_max * 1e6})
-        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(),
-                                                      f"{self.get_name()}: profiler", link.source.name,
+        self.diagnostics_pub.publish(diagnostic_array(self, "profiler", link.source.name,
                                                       level, message, values))
 
     def destroy_node(self) -> None:

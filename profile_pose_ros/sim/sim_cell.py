@@ -207,7 +207,7 @@ class SimCellNode(Node):
                            "robot_faults": r.faults_raised, "robot_last_fault": r.last_fault[1] or "none",
                            "robot_clamped": r.clamped,
                            "arm_offset_um": [round(x * 1e6, 1) for x in r.arm.position[:3]]})
-        self.diagnostics_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), f"{self.get_name()}: cell",
+        self.diagnostics_pub.publish(diagnostic_array(self, "cell",
                                                       "sim_cell", level, message, values))
 
     def destroy_node(self) -> None:

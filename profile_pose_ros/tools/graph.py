@@ -3,10 +3,13 @@ to watch them: what the checks, the experiment and the soak run against."""
 from __future__ import annotations
 
 import os
+import shutil
 import socket
 import subprocess
 import time
 from pathlib import Path
+
+import yaml
 
 from . import processes
 
@@ -41,12 +44,29 @@ def ros_params(values: dict) -> list[str]:
     return args
 
 
+def launcher(executable: str) -> list[str]:
+    """`ros2 run profile_pose_ros <exe>` where a ROS install provides the package, else the venv's
+    console script (or `python -m`)."""
+    ros2 = shutil.which("ros2")
+    if ros2 and subprocess.run([ros2, "pkg", "prefix", "profile_pose_ros"], capture_output=True,
+                               timeout=30).returncode == 0:
+        return [ros2, "run", "profile_pose_ros", executable]
+    return processes.executable(executable, MODULES[executable])
+
+
 class Graph:
-    def __init__(self, log_dir: Path, domain_id: int | None = None, client_name: str = "graph_client") -> None:
+    """Processes are closed in the reverse of their start order: start the cell first and the bridge
+    last, so that the bridge stops (and sends STOP) first."""
+
+    def __init__(self, log_dir: Path, domain_id: int | None = None, client_name: str = "graph_client",
+                 namespace: str = "", params_file: Path | None = None) -> None:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
 
+        self.namespace = namespace.strip("/")
+        self.params_file = params_file
+        self._launcher: dict[str, list[str]] = {}
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.domain_id = domain_id if domain_id is not None else 1 + (os.getpid() * 7) % 200
@@ -54,7 +74,8 @@ class Graph:
         self.rclpy = rclpy
         self.context = Context()
         rclpy.init(context=self.context, domain_id=self.domain_id)
-        self.node = rclpy.create_node(client_name, context=self.context)
+        self.node = rclpy.create_node(client_name, context=self.context,
+                                      namespace="/" + self.namespace if self.namespace else None)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._parameter_clients: dict = {}
@@ -67,16 +88,39 @@ class Graph:
         for status in msg.status:
             self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
 
+    def _status_prefix(self, node: str) -> str:
+        return f"{self.namespace}/{node}:" if self.namespace else f"{node}:"
+
+    def reported(self, node: str) -> bool:
+        """Whether `node` of this graph's namespace has published /diagnostics."""
+        return any(name.startswith(self._status_prefix(node)) for name in self.diagnostics)
+
     def diagnostic(self, node: str, key: str, default: str = "") -> str:
-        """A value from the newest /diagnostics of the node whose status name starts with `node`."""
+        """A value from the newest /diagnostics of `node` of this graph's namespace."""
         for name, values in self.diagnostics.items():
-            if name.startswith(node):
+            if name.startswith(self._status_prefix(node)):
                 return values.get(key, default)
         return default
 
     def start(self, executable: str, params: dict | None = None, name: str | None = None) -> subprocess.Popen:
         name = name or executable
-        command = processes.executable(executable, MODULES[executable]) + ["--ros-args", *ros_params(params or {})]
+        if executable not in self._launcher:
+            self._launcher[executable] = launcher(executable)
+        command = [*self._launcher[executable], "--ros-args"]
+        if self.namespace:
+            command += ["-r", f"__ns:=/{self.namespace}"]
+        if self.params_file is None:
+            command += ros_params(params or {})
+        else:  # a file's node block beats `-p`; a later file beats an earlier one
+            command += ["--params-file", str(self.params_file)]
+            if params:
+                overrides = self.log_dir / f"{name}.overrides.yaml"
+                overrides.write_text(yaml.safe_dump({f"/**/{executable}": {"ros__parameters": dict(params)}}))
+                command += ["--params-file", str(overrides)]
+        with open(self.log_dir / "commands.txt", "a") as f:
+            f.write(f"ROS_DOMAIN_ID={self.domain_id} {' '.join(command)}\n")
+        with open(self.log_dir / "params.yaml", "a") as f:  # what each node was given, for a replay
+            f.write(yaml.safe_dump({executable: {"ros__parameters": dict(params or {})}}, sort_keys=False))
         process = processes.start(command, self.domain_id, self.log_dir / f"{name}.log")
         self.processes[name] = process
         return process

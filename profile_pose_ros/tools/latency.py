@@ -33,7 +33,7 @@ def header_stamp_ns(cdr: bytes) -> int:
     return sec * 1_000_000_000 + nanosec
 
 
-def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float) -> dict:
+def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float, skip: tuple[str, ...] = ()) -> dict:
     import importlib
 
     from rclpy.qos import qos_profile_sensor_data
@@ -46,6 +46,9 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
         exp = Experiment(graph, control_hz, noise, refine_model=refine_model,
                          profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None)
         for name, topic, module, cls in STAGES:
+            if name in skip:
+                continue
+
             def on_message(data, info, name=name) -> None:
                 if recording[0]:
                     latencies[name].append((info["source_timestamp"] - header_stamp_ns(data)) * 1e-6)
@@ -96,13 +99,14 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, default=20.0, help="measured time per rate")
     parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
     parser.add_argument("--noise", type=float, default=5e-6)
+    parser.add_argument("--skip", nargs="*", default=[], help="stages not to subscribe to")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "latency")
     results = []
     for rate in args.rates:
         print(f"measuring at {rate:g} Hz for {args.seconds:g} s (logs in {out})", flush=True)
-        results.append(measure(rate, args.seconds, out, args.refine_model, args.noise))
+        results.append(measure(rate, args.seconds, out, args.refine_model, args.noise, tuple(args.skip)))
     print_table(results)
     write_json(out / "latency.json", {"results": results})
     print(f"results: {out / 'latency.json'}")

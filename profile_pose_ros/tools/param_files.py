@@ -13,7 +13,8 @@ def node_parameters(path: str | Path, node_name: str, namespace: str = "") -> di
     if not isinstance(data, dict):
         raise ValueError(f"{path}: not a ROS 2 parameter file (no node blocks)")
     namespace = "/" + namespace.strip("/") if namespace.strip("/") else ""
-    names = ["/**", node_name, f"/{node_name}", f"{namespace}/{node_name}", f"{namespace.lstrip('/')}/{node_name}"]
+    names = ["/**", f"/**/{node_name}", node_name, f"/{node_name}", f"{namespace}/{node_name}",
+             f"{namespace.lstrip('/')}/{node_name}"]
     values: dict = {}
     for key in dict.fromkeys(names):  # in order, without repeats
         block = data.get(key)

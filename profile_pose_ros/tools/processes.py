@@ -16,10 +16,21 @@ def executable(name: str, module: str) -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", module]
 
 
+def _die_with_parent() -> None:
+    """In the child before exec: SIGTERM when the starting process dies, however it dies (a killed
+    bringup or test leaves no node behind; SIGTERM takes the nodes' clean path, the bridge's STOP)."""
+    import ctypes
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 def start(command: list[str], domain_id: int, log_path: Path) -> subprocess.Popen:
+    """Start from the main thread: the death signal follows the thread that started the child."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
     log = open(log_path, "w")
-    process = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+    process = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT,
+                               preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
     process.log_file = log  # closed by stop()
     return process
 

@@ -1,0 +1,137 @@
+"""profile_pose_bringup: bring a cell up without launch files: sim_cell (or, with --hardware, nothing: the
+real devices) and the four nodes, each its own process, with one parameter file; logs and the exact
+commands under runs/<timestamp>/; "ready" only once every node reports and profiles, poses and
+corrections flow; Ctrl-C (or SIGTERM) stops them bridge first (it sends STOP), cell last, and leaves no
+process behind. `ros2 run profile_pose_ros <exe>` is used where a ROS install provides the package, the
+venv's console scripts otherwise. --namespace puts a second cell beside the first without cross-talk.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from ..resources import config_path
+from .graph import Graph, free_port
+from .report import run_dir
+
+NODES = ("profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge")
+ALIVE_TOPICS = ("profile", "pose", "correction")
+
+
+class Bringup:
+    def __init__(self, out: Path, params_file: Path, namespace: str = "", hardware: bool = False,
+                 record: bool = False, domain_id: int | None = None) -> None:
+        self.out, self.hardware, self.record = out, hardware, record
+        self.graph = Graph(out, domain_id=domain_id, client_name="bringup", namespace=namespace,
+                           params_file=params_file)
+        self.seen: dict[str, int] = {topic: 0 for topic in ALIVE_TOPICS}
+
+    def start(self) -> None:
+        g = self.graph
+        if self.record:  # first: subscribed before the others publish, and closed last
+            g.start("bag_recorder", {"output": str(self.out / "bag")})
+        driver, bridge = {}, {}
+        if not self.hardware:  # ports of its own: several simulated cells side by side
+            profiler, mcu, robot = free_port(), free_port(), free_port()
+            g.start("sim_cell", {"profiler_port": profiler, "mcu_port": mcu, "robot_port": robot})
+            driver = {"port": profiler, "serial_url": f"socket://127.0.0.1:{mcu}"}
+            bridge = {"port": robot}
+        for name, params in zip(NODES, (driver, {}, {}, bridge)):
+            g.start(name, params)
+        self._watch_topics()
+
+    def _watch_topics(self) -> None:
+        import importlib
+
+        from rclpy.qos import qos_profile_sensor_data
+
+        types = {"profile": ("sensor_msgs.msg", "PointCloud2"), "pose": ("geometry_msgs.msg", "PoseStamped"),
+                 "correction": ("geometry_msgs.msg", "TwistStamped")}
+        self._subscriptions = []
+        for topic, (module, cls) in types.items():
+            def count(_data, topic=topic) -> None:
+                self.seen[topic] += 1
+            qos = qos_profile_sensor_data if topic == "profile" else 10
+            self._subscriptions.append(self.graph.node.create_subscription(
+                getattr(importlib.import_module(module), cls), topic, count, qos, raw=True))
+
+    def missing(self) -> list[str]:
+        """What is not up yet: nodes without diagnostics, topics without messages, an unconnected bridge."""
+        g = self.graph
+        nodes = [n for n in NODES + (() if self.hardware else ("sim_cell",)) if not g.reported(n)]
+        topics = [f"topic {t}" for t, n in self.seen.items() if n == 0]
+        bridge = g.diagnostic("motoplus_bridge", "state", "")
+        link = [] if bridge in ("connected", "arming", "armed") else [f"robot controller link ({bridge or 'no report'})"]
+        return nodes + topics + link
+
+    def wait_ready(self, timeout: float) -> float:
+        start = time.monotonic()
+        if not self.graph.spin_until(lambda: not self.missing(), timeout):
+            raise RuntimeError(f"not ready after {timeout:g} s, missing: {', '.join(self.missing())}; "
+                               f"logs in {self.out}")
+        for subscription in self._subscriptions:  # profiles at 1 kHz are not this process's business
+            self.graph.node.destroy_subscription(subscription)
+        return time.monotonic() - start
+
+    def status(self) -> str:
+        g = self.graph
+        return (f"profiler {float(g.diagnostic('profiler_driver', 'rate_hz', '0') or 0):.1f} Hz, "
+                f"poses {float(g.diagnostic('pose_estimator', 'rate_hz', '0') or 0):.1f} Hz, "
+                f"bridge {g.diagnostic('motoplus_bridge', 'state', '?')}")
+
+    def close(self) -> None:
+        self.graph.close()  # reverse start order: bridge (STOP) first, the cell and the recorder last
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--hardware", action="store_true", help="no sim_cell: the nodes talk to the real devices")
+    parser.add_argument("--params-file", help="default: config/cell.yaml (simulated), config/hardware.yaml")
+    parser.add_argument("--namespace", default="", help="e.g. cell2: every node and topic under /cell2")
+    parser.add_argument("--record", action="store_true", help="also record the cell's topics (bag_recorder)")
+    parser.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: the environment's, else 0)")
+    parser.add_argument("--ready-timeout", type=float, default=90.0)
+    parser.add_argument("--duration", type=float, help="stop by itself after this long (s) once ready")
+    parser.add_argument("--out", default="runs")
+    args = parser.parse_args(argv)
+
+    params_file = Path(args.params_file) if args.params_file else config_path(
+        "hardware.yaml" if args.hardware else "cell.yaml")
+    domain_id = args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID", "0"))
+    out = run_dir(args.out, f"bringup{'-' + args.namespace.strip('/') if args.namespace else ''}")
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    cell = Bringup(out, params_file, args.namespace, args.hardware, args.record, domain_id)
+    code = 0
+    try:
+        cell.start()
+        print(f"starting {'the real cell' if args.hardware else 'the simulated cell'} with {params_file} "
+              f"(domain {domain_id}{', namespace /' + args.namespace.strip('/') if args.namespace else ''}); "
+              f"logs in {out}", flush=True)
+        ready_s = cell.wait_ready(args.ready_timeout)
+        print(f"ready in {ready_s:.1f} s: {cell.status()}; Ctrl-C stops the cell", flush=True)
+        deadline = time.monotonic() + args.duration if args.duration else float("inf")
+        next_status = time.monotonic() + 10.0
+        while not stop.is_set() and time.monotonic() < deadline:
+            cell.graph.spin_until(stop.is_set, min(1.0, max(0.0, deadline - time.monotonic())))
+            if time.monotonic() >= next_status:
+                print(cell.status(), flush=True)
+                next_status += 10.0
+    except RuntimeError as exc:  # a node died or the cell did not come up
+        print(f"profile_pose_bringup: {exc}", file=sys.stderr)
+        code = 1
+    finally:
+        print("stopping: bridge first (STOP), the cell last", flush=True)
+        cell.close()
+    print(f"stopped; logs in {out}" + (f", bag in {out / 'bag'}" if args.record else ""))
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

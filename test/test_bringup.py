@@ -1,0 +1,93 @@
+"""profile_pose_bringup as a user runs it: two namespaced simulated cells side by side without cross-talk,
+Ctrl-C stopping each cleanly with no process left, and a node that cannot start reported."""
+from __future__ import annotations
+
+import signal
+import subprocess
+from pathlib import Path
+
+from geometry_msgs.msg import PoseStamped
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2
+
+from profile_pose_ros.tools import processes
+
+CELLS = ("cell_a", "cell_b")
+
+
+def bringup(domain_id: int, out: Path, *args: str) -> subprocess.Popen:
+    command = processes.executable("profile_pose_bringup", "profile_pose_ros.tools.bringup") + [
+        "--domain-id", str(domain_id), "--out", str(out), *args]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def node_processes(marker: str) -> list[int]:
+    """Processes whose command line mentions `marker` (e.g. the namespace remap)."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit():
+            try:
+                if marker in (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace"):
+                    found.append(int(proc.name))
+            except OSError:
+                pass
+    return found
+
+
+def stamp(msg) -> tuple[int, int]:
+    return msg.header.stamp.sec, msg.header.stamp.nanosec
+
+
+def test_two_namespaced_cells_side_by_side_without_cross_talk(ros, tmp_path) -> None:
+    cells = {ns: bringup(ros.domain_id, tmp_path / ns, "--namespace", ns) for ns in CELLS}
+    try:
+        client = ros.node("cross_talk_check")
+        profiles = {ns: set() for ns in CELLS}
+        poses = {ns: [] for ns in CELLS}
+        for ns in CELLS:
+            client.create_subscription(PointCloud2, f"/{ns}/profile", lambda m, ns=ns: profiles[ns].add(stamp(m)),
+                                       qos_profile_sensor_data)
+            client.create_subscription(PoseStamped, f"/{ns}/pose", lambda m, ns=ns: poses[ns].append(stamp(m)), 1000)
+        assert ros.spin_until(lambda: all(len(poses[ns]) >= 200 for ns in CELLS), 180.0), {
+            ns: (len(profiles[ns]), len(poses[ns]), p.poll()) for ns, p in cells.items()}
+        for ns, other in (CELLS, CELLS[::-1]):
+            since = [s for s in poses[ns] if s >= min(profiles[ns])]  # once this client's subscription matched
+            own = [s for s in since if s in profiles[ns]]
+            assert len(own) >= 0.9 * len(since) > 100  # (the rest: profiles this client's best-effort link lost)
+            assert not set(poses[ns]) & profiles[other]  # no pose of the other cell's profiles
+        # Ctrl-C: each bringup stops its nodes and exits cleanly; nothing of it is left running
+        for ns, process in cells.items():
+            process.send_signal(signal.SIGINT)
+        for ns, process in cells.items():
+            output = process.communicate(timeout=60)[0]
+            assert process.returncode == 0, output
+            assert "ready in" in output and "stopped" in output
+            left = node_processes(f"__ns:=/{ns}")
+            assert left == [], (output, [Path(f"/proc/{pid}/cmdline").read_bytes()[:300] for pid in left])
+    finally:
+        for process in cells.values():
+            if process.poll() is None:
+                process.kill()  # its nodes get SIGTERM from the kernel (processes.start)
+                process.wait()
+
+
+def test_a_node_that_cannot_start_is_reported_and_everything_stops(ros, tmp_path) -> None:
+    params = tmp_path / "bad.yaml"
+    params.write_text("/**/pose_estimator:\n  ros__parameters:\n    gauge_file: /no/such/gauge.yaml\n")
+    process = bringup(ros.domain_id, tmp_path, "--params-file", str(params), "--namespace", "broken_cell")
+    output = process.communicate(timeout=120)[0]
+    assert process.returncode == 1, output
+    assert "pose_estimator exited" in output
+    assert node_processes("__ns:=/broken_cell") == []
+
+
+def test_a_killed_bringup_leaves_no_node_behind(ros, tmp_path) -> None:
+    process = bringup(ros.domain_id, tmp_path, "--namespace", "killed_cell")
+    client = ros.node("killed_cell_watch")
+    poses = []
+    client.create_subscription(PoseStamped, "/killed_cell/pose", poses.append, 100)
+    assert ros.spin_until(lambda: poses, 120.0)
+    assert len(node_processes("__ns:=/killed_cell")) == 5
+    process.kill()
+    process.wait()
+    assert ros.spin_until(lambda: not node_processes("__ns:=/killed_cell"), 30.0)
