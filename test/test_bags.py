@@ -40,6 +40,8 @@ def test_splits_by_size_and_duration_into_one_bag_read_back_in_order(tmp_path, s
         assert info.message_count == 400 and info.topics["/b"].count == 134 and info.topics["/a"].count == 266
         assert texts(tmp_path / name) == [f"message {i:04d}" + "x" * 20 for i in range(400)]
         assert abs(info.duration_ns - 399 * 10 ** 7) <= 1
+        if storage == "mcap":
+            assert foxglove_count(tmp_path / name) == 400
 
 
 def test_zstd_chunks_an_empty_bag_and_refusals(tmp_path) -> None:
@@ -91,6 +93,27 @@ def test_a_killed_writer_leaves_everything_up_to_its_last_flush(tmp_path, storag
     assert got[:250] == [f"m{i}" for i in range(250)]  # all up to the flush; what followed may be cut
     assert got == [f"m{i}" for i in range(len(got))]
     assert recover(bag) == []  # a closed bag is left as it is
+    if storage == "mcap":
+        assert foxglove_count(bag) == len(got)
+
+
+def foxglove_count(bag) -> int:
+    """Messages in the bag's MCAP files as Foxglove's own reader (the `mcap` library) sees them, after
+    checking the ros2 profile, the summary and the schemas."""
+    from mcap.reader import make_reader
+
+    total = 0
+    for path in sorted(bag.glob("*.mcap")):
+        with path.open("rb") as stream:
+            reader = make_reader(stream)
+            assert reader.get_header().profile == "ros2"
+            summary = reader.get_summary()
+            assert all(s.encoding == "ros2msg" and s.data for s in summary.schemas.values())
+            assert all(c.message_encoding == "cdr" for c in summary.channels.values())
+            count = sum(1 for _ in reader.iter_messages())
+            assert count == summary.statistics.message_count
+            total += count
+    return total
 
 
 # ---------------------------------------------------------------------- the nodes

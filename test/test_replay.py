@@ -5,6 +5,7 @@ from __future__ import annotations
 from geometry_msgs.msg import PoseStamped
 
 from profile_pose_ros.bags import bag_info, read_messages
+from profile_pose_ros.tools import processes
 from profile_pose_ros.tools.graph import Graph, free_port
 from profile_pose_ros.tools.replay import POSE_TYPE, canonical, estimator_values, replay
 from profile_pose_ros.tools.param_files import parse_overrides
@@ -68,9 +69,10 @@ def test_recorded_profiles_replay_to_the_recorded_poses_bit_for_bit(tmp_path) ->
         poses = count_poses(graph)
         assert graph.spin_until(lambda: graph.node.count_subscribers("pose") >= 2, 60.0)  # the recorder's too
         graph.start("bag_player", {"bag": str(recorded), "topics": ["/profile"], "wait_for_subscribers": True})
-        assert graph.spin_until(lambda: len(poses) >= report["replayed_poses"], 120.0)
-        assert graph.processes["bag_player"].wait(30.0) == 0  # exits by itself at the end of the bag
-        graph.processes.pop("bag_player")
+        player = graph.processes.pop("bag_player")  # it exits by itself at the end of the bag
+        assert graph.spin_until(lambda: len(poses) >= report["replayed_poses"] and player.poll() is not None,
+                                120.0)
+        assert processes.stop(player) == 0
         graph.stop("pose_estimator")
         graph.stop("bag_recorder")
     finally:

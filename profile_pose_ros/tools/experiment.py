@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..nodes.messages import pose_stamped, rotation_translation
+from ..bags import bag_info
 from .graph import Graph, free_port
 from .report import run_dir, table, write_json
 
@@ -274,11 +275,11 @@ def _save(fig, path) -> str:
 
 def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise: float, out, seed: int = 0,
         compensator: dict | None = None, modes: tuple[str, ...] = ("open", "closed"),
-        refine_model: str = "dense") -> dict:
+        refine_model: str = "dense", bag: Path | None = None) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_experiment")
     runs: list[dict] = []
     try:
-        exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model)
+        exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model, bag=bag)
         exp.start()
         for mode in modes:
             exp.bridge(arm=(mode == "closed"))
@@ -314,16 +315,19 @@ def main(argv=None) -> int:
     parser.add_argument("--refine-model", default="dense", choices=["corners", "dense"],
                         help="pose_estimator's refinement: dense fits every point (~1.6x less noise along the "
                              "gauge's weak y axis, ~3 ms per profile)")
+    parser.add_argument("--no-bag", action="store_true", help="do not record the run (by default every topic "
+                        "goes to <run>/bag, MCAP with zstd chunks)")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "experiment")
+    bag = None if args.no_bag else out / "bag"
     gains = {k: list(v) for k, v in (("kp", args.kp), ("kd", args.kd), ("acceleration_psd", args.psd)) if v}
     print(f"Table IV protocol at {args.rate:g} Hz: {len(args.axes)} axes x {len(args.sizes)} sizes x "
           f"{args.repeats} repeats, open and closed loop; gauge config/gauge_paper_n5.yaml, "
           f"{args.refine_model} refinement, {args.noise * 1e6:g} um profile noise; logs in {out / 'logs'}",
           flush=True)
     result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=gains,
-                 modes=tuple(args.modes), refine_model=args.refine_model)
+                 modes=tuple(args.modes), refine_model=args.refine_model, bag=bag)
     if len(args.modes) < 2:
         return 0
     text, checks = table_iv(result["runs"], args.axes, args.sizes)
@@ -339,6 +343,11 @@ def main(argv=None) -> int:
     result["plots"] = plot(result["runs"], out, [a for a in args.axes if a != "xyz"])
     write_json(out / "experiment.json", result)
     print(f"results: {out / 'experiment.json'}; plots: {', '.join(result['plots'])}")
+    if bag is not None:
+        info = bag_info(bag)
+        size_mb = sum(f.stat().st_size for f in bag.iterdir()) / 1e6
+        print(f"bag: {bag} ({info.message_count} messages on {len(info.topics)} topics, {size_mb:.0f} MB); "
+              f"re-estimate it offline with\n  profile_pose_replay {bag} --params-file {out / 'logs' / 'params.yaml'}")
     return 0
 
 
