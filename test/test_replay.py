@@ -42,7 +42,8 @@ def test_recorded_profiles_replay_to_the_recorded_poses_bit_for_bit(tmp_path) ->
         # the recorder on every topic before the first trigger: no pose without its profile in the bag
         assert graph.spin_until(lambda: graph.node.count_subscribers("profile") >= 2
                                 and graph.node.count_subscribers("pose") >= 2
-                                and graph.node.count_subscribers("pose_with_covariance") >= 1, 60.0)
+                                and graph.node.count_subscribers("pose_with_covariance") >= 1
+                                and graph.node.count_subscribers("/sim/ground_truth") >= 1, 60.0)
         graph.set_parameters("sim_cell", {"trigger_rate": 83.333})
         assert graph.spin_until(lambda: len(poses) >= 150, 120.0)
         graph.stop("profiler_driver")  # no more profiles; every pose is then in the bag once the recorder closes

@@ -123,8 +123,7 @@ class BagPlayerNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(BagPlayerNode, NODE_NAME, args, startup_errors=(BagError, ValueError),
-                    graceful=True)
+    return run_node(BagPlayerNode, NODE_NAME, args, startup_errors=(BagError, ValueError))
 
 
 if __name__ == "__main__":

@@ -144,8 +144,7 @@ class BagRecorderNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(BagRecorderNode, NODE_NAME, args, startup_errors=(BagError, ValueError),
-                    graceful=True)
+    return run_node(BagRecorderNode, NODE_NAME, args, startup_errors=(BagError, ValueError))
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ two threads waiting in rcl at once would contend for the GIL.
 """
 from __future__ import annotations
 
+import threading
 import time
 from typing import Callable
 
@@ -56,11 +57,12 @@ class FastInput:
             handled += 1
 
 
-def spin(executor, fast_input: FastInput, housekeeping_period: float = 0.01) -> None:
-    """Serve fast_input continuously and the executor's other work every housekeeping_period."""
+def spin(executor, fast_input: FastInput, stop: threading.Event, housekeeping_period: float = 0.01) -> None:
+    """Serve fast_input continuously and the executor's other work every housekeeping_period, until
+    `stop` (Ctrl-C) or shutdown."""
     context = executor.context
     due = time.monotonic()
-    while context.ok():
+    while context.ok() and not stop.is_set():
         try:
             fast_input.pump(max(0.0, due - time.monotonic()))
             if time.monotonic() >= due:

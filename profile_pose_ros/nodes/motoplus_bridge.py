@@ -184,7 +184,7 @@ class MotoPlusBridgeNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,), graceful=True)
+    return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,))
 
 
 if __name__ == "__main__":

@@ -235,7 +235,7 @@ class PoseEstimatorNode(Node):
 
 def main(args=None) -> int:
     return run_node(PoseEstimatorNode, NODE_NAME, args, startup_errors=(GaugeError,),
-                    spin=lambda executor, node: spin(executor, node.fast_input))
+                    spin=lambda executor, node, stop: spin(executor, node.fast_input, stop))
 
 
 if __name__ == "__main__":

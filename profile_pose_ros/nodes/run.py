@@ -15,16 +15,14 @@ from rclpy.signals import SignalHandlerOptions
 
 def run_node(factory: Callable[[], Node], name: str, args=None,
              startup_errors: tuple[type[BaseException], ...] = (ValueError,),
-             spin: Callable[[SingleThreadedExecutor, Node], None] | None = None,
-             graceful: bool = False) -> int:
-    """graceful: Ctrl-C and SIGTERM (a process manager's stop) only ask the spin loop to end, so no
-    callback is cut short and destroy_node() still has a live context, for nodes whose shutdown must
-    run whole (the bridge's STOP, the recorder draining its queues and closing its bag)."""
+             spin: Callable[[SingleThreadedExecutor, Node, threading.Event], None] | None = None) -> int:
+    """Ctrl-C and SIGTERM (a process manager's stop) only ask the spin loop to end (`spin` gets that
+    event too), so no callback is cut short and destroy_node() runs whole with a live context: the
+    bridge's STOP, the recorder draining its queues and closing its bag."""
     stop = threading.Event()
-    if graceful:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, lambda *_: stop.set())
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO if graceful else None)
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = factory()
     except startup_errors as exc:
@@ -35,12 +33,10 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
     executor.add_node(node)
     try:
         if spin is not None:
-            spin(executor, node)
-        elif graceful:
+            spin(executor, node, stop)
+        else:
             while not stop.is_set() and executor.context.ok():
                 executor.spin_once(timeout_sec=0.05)
-        else:
-            executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
