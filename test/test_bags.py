@@ -149,7 +149,8 @@ def test_recorder_keeps_every_message_on_sigint_and_up_to_the_last_flush_on_sigk
         "discovery_period": 0.1})
     try:
         node = ros.node("talker")
-        chatter = node.create_publisher(String, "chatter", QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        chatter = node.create_publisher(String, "chatter", reliable)
         latched = node.create_publisher(String, "latched", QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         latched.publish(String(data="configuration"))  # before the recorder subscribes: transient local

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from geometry_msgs.msg import PoseStamped
 
-from profile_pose_ros.bags import bag_info, read_messages
+from profile_pose_ros.bags import read_messages
 from profile_pose_ros.tools import processes
 from profile_pose_ros.tools.graph import Graph, free_port
 from profile_pose_ros.tools.replay import POSE_TYPE, canonical, estimator_values, replay

@@ -64,7 +64,8 @@ class BagPlayerNode(Node):
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
         self._thread = threading.Thread(target=self._run, name="bag-player", daemon=True)
         self._thread.start()
-        self.get_logger().info(f"playing {len(self.topics)} topics of {v['bag']} ({self.info.duration_ns * 1e-9:.1f} s) "
+        seconds = self.info.duration_ns * 1e-9
+        self.get_logger().info(f"playing {len(self.topics)} topics of {v['bag']} ({seconds:.1f} s) "
                                f"at {v['rate']}x{' in a loop' if v['loop'] else ''}")
 
     def _wait_for_subscribers(self) -> None:

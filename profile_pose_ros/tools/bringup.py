@@ -66,7 +66,8 @@ class Bringup:
         nodes = [n for n in NODES + (() if self.hardware else ("sim_cell",)) if not g.reported(n)]
         topics = [f"topic {t}" for t, n in self.seen.items() if n == 0]
         bridge = g.diagnostic("motoplus_bridge", "state", "")
-        link = [] if bridge in ("connected", "arming", "armed") else [f"robot controller link ({bridge or 'no report'})"]
+        connected = bridge in ("connected", "arming", "armed")
+        link = [] if connected else [f"robot controller link ({bridge or 'no report'})"]
         return nodes + topics + link
 
     def wait_ready(self, timeout: float) -> float:
