@@ -68,9 +68,11 @@ class MotoPlusBridgeNode(Node):
         self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity)
         self._used_stamp_ns: int | None = None  # stamp of the newest correction in the increment being sent
         self._ages: list[float] = []  # trigger-to-send times (s) since the last diagnostics
+        self._sent: list[tuple[int, tuple[int, ...]]] = []  # increments sent, not yet published
         self.stale_periods = 0
         self.state_pub = self.create_publisher(PoseStamped, "robot_state", 10)
-        self.increment_pub = self.create_publisher(TwistStamped, "~/increment", 10)
+        self.increment_pub = self.create_publisher(TwistStamped, "~/increment", 100)
+        self._sent_guard = self.create_guard_condition(self._publish_increments)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_subscription(TwistStamped, "correction", self._on_correction, 10)
         self.create_service(Trigger, "~/start", self._on_start)
@@ -113,21 +115,28 @@ class MotoPlusBridgeNode(Node):
         return velocity * self.limits.period_s
 
     def _on_sent(self, units: tuple[int, ...], sent: float) -> None:
-        """`~/increment`: what went to the controller (m and rad this period, after clamping), stamped with
-        the trigger time of the newest correction in it; its publish time is the send time (+ µs). Zero
-        increments for stale corrections are not published."""
+        """Socket thread, right after a CORRECTION left: note it; the executor publishes it. Publishing here
+        would make the thread that must answer every STATE within the period wait for the GIL."""
         stamp_ns = self._used_stamp_ns
-        if stamp_ns is None:
+        if stamp_ns is None:  # a zero increment for a stale correction: not an increment of the chain
             return
         with self._lock:
             self._ages.append(sent - stamp_ns * 1e-9)
-        step = mp.units_to_metres(units)
-        msg = TwistStamped()
-        msg.header.stamp = Time(nanoseconds=stamp_ns).to_msg()
-        msg.header.frame_id = self.values["base_frame"]
-        (msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z,
-         msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z) = (float(u) for u in step)
-        self.increment_pub.publish(msg)
+            self._sent.append((stamp_ns, units))
+        self._sent_guard.trigger()
+
+    def _publish_increments(self) -> None:
+        """`~/increment`: each increment sent (m and rad this period, after clamping), stamped with the
+        trigger time of the newest correction in it."""
+        with self._lock:
+            sent, self._sent = self._sent, []
+        for stamp_ns, units in sent:
+            msg = TwistStamped()
+            msg.header.stamp = Time(nanoseconds=stamp_ns).to_msg()
+            msg.header.frame_id = self.values["base_frame"]
+            (msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z,
+             msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z) = mp.units_to_metres(units)
+            self.increment_pub.publish(msg)
 
     def _on_state(self, state: mp.State, host_time: float) -> None:
         pose = np.array(mp.units_to_metres(state.pose))
