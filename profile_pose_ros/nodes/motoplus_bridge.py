@@ -28,6 +28,7 @@ from .parameters import Param, declare_all
 from .run import run_node
 
 NODE_NAME = "motoplus_bridge"
+GIL_SWITCH_INTERVAL = 1e-3  # s (CPython's default is 5 ms): the socket thread answers each STATE promptly
 FRAMES = {"base": mp.FRAME_BASE, "robot": mp.FRAME_ROBOT, "tool": mp.FRAME_TOOL, "user": mp.FRAME_USER}
 
 PARAMETERS = [
@@ -61,6 +62,9 @@ def limits_from(v: dict) -> SessionLimits:
 class MotoPlusBridgeNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
+        # Process-wide: whatever else runs in this process (an executor busy with corrections, a test
+        # harness), the socket thread must get the GIL within a fraction of the period.
+        sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL))
         v = self.values = declare_all(self, PARAMETERS)
         self.limits = limits_from(v)
         self._lock = threading.Lock()
