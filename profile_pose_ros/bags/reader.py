@@ -69,7 +69,9 @@ def bag_info(path: str | Path) -> BagInfo:
             old = topics.get(c.topic)
             count = c.msgcount + (old.count if old else 0)
             topics[c.topic] = TopicInfo(c.topic, c.msgtype, count, tuple(c.ext.offered_qos_profiles))
-        return BagInfo(path, _storage_of(path), _files(path), reader.start_time if reader.message_count
+        files = _files(path)
+        storage = "mcap" if any(f.endswith(".mcap") for f in files) else "sqlite3"
+        return BagInfo(path, storage, files, reader.start_time if reader.message_count
                        else 0, reader.duration, reader.message_count, topics)
     finally:
         reader.close()
@@ -78,9 +80,6 @@ def bag_info(path: str | Path) -> BagInfo:
 def _files(path: Path) -> tuple[str, ...]:
     return tuple(sorted(f.name for f in path.iterdir() if f.suffix in (".mcap", ".db3")))
 
-
-def _storage_of(path: Path) -> str:
-    return "mcap" if any(f.endswith(".mcap") for f in _files(path)) else "sqlite3"
 
 
 def read_messages(path: str | Path, topics: Iterable[str] | None = None, start_ns: int | None = None

@@ -1,13 +1,34 @@
 """Conversions between ROS messages and the core's arrays (message types only, no rclpy node code)."""
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from sensor_msgs.msg import PointCloud2, PointField
 
 from ..core.profile_cloud import Field, decode_profile, encode_profile
-from ..core.rotation import quaternion_xyzw, rotation_from_quaternion_xyzw
+from ..core.rotation import quaternion_xyzw, rotation_angle, rotation_from_quaternion_xyzw
+
+_CDR_STAMP = struct.Struct("<4xiI")  # encapsulation header, then header.stamp (sec, nanosec)
+
+
+def stamp_ns(stamp: Time) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def cdr_stamp_ns(cdr: bytes) -> int:
+    """header.stamp of a serialized message that starts with a std_msgs/Header (little-endian CDR), without
+    decoding the rest (a 3200-point profile, say)."""
+    sec, nanosec = _CDR_STAMP.unpack_from(cdr)
+    return sec * 1_000_000_000 + nanosec
+
+
+def pose_difference(a, b) -> tuple[float, float]:
+    """(position m, rotation rad) between two geometry_msgs Pose."""
+    (ra, ta), (rb, tb) = rotation_translation(a), rotation_translation(b)
+    return float(np.linalg.norm(ta - tb)), rotation_angle(ra, rb)
 
 
 def cloud_from_points(points: np.ndarray, stamp: Time, frame_id: str,

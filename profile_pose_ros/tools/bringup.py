@@ -20,7 +20,8 @@ from .graph import Graph, free_port
 from .report import run_dir
 
 NODES = ("profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge")
-ALIVE_TOPICS = ("profile", "pose", "correction")
+ALIVE_TOPICS = {"profile": "sensor_msgs/msg/PointCloud2", "pose": "geometry_msgs/msg/PoseStamped",
+                "correction": "geometry_msgs/msg/TwistStamped"}  # each must carry messages before "ready"
 
 
 class Bringup:
@@ -46,19 +47,17 @@ class Bringup:
         self._watch_topics()
 
     def _watch_topics(self) -> None:
-        import importlib
-
         from rclpy.qos import qos_profile_sensor_data
 
-        types = {"profile": ("sensor_msgs.msg", "PointCloud2"), "pose": ("geometry_msgs.msg", "PoseStamped"),
-                 "correction": ("geometry_msgs.msg", "TwistStamped")}
+        from ..nodes.bag_common import message_class
+
         self._subscriptions = []
-        for topic, (module, cls) in types.items():
+        for topic, msgtype in ALIVE_TOPICS.items():
             def count(_data, topic=topic) -> None:
                 self.seen[topic] += 1
             qos = qos_profile_sensor_data if topic == "profile" else 10
             self._subscriptions.append(self.graph.node.create_subscription(
-                getattr(importlib.import_module(module), cls), topic, count, qos, raw=True))
+                message_class(msgtype), topic, count, qos, raw=True))
 
     def missing(self) -> list[str]:
         """What is not up yet: nodes without diagnostics, topics without messages, an unconnected bridge."""

@@ -10,7 +10,6 @@ At 1 kHz the profiler has its own trigger clock beside the 250 Hz controller, as
 from __future__ import annotations
 
 import argparse
-import struct
 import sys
 import time
 
@@ -21,22 +20,17 @@ from .graph import Graph
 from .processes import cpu_seconds
 from .report import run_dir, summary, table, write_json
 
-STAGES = (("profile", "profile", "sensor_msgs.msg", "PointCloud2"),
-          ("pose", "pose", "geometry_msgs.msg", "PoseStamped"),
-          ("correction", "correction", "geometry_msgs.msg", "TwistStamped"),
-          ("increment sent", "/motoplus_bridge/increment", "geometry_msgs.msg", "TwistStamped"))
-
-
-def header_stamp_ns(cdr: bytes) -> int:
-    """header.stamp of a serialized message whose first field is a std_msgs/Header (little-endian CDR)."""
-    sec, nanosec = struct.unpack_from("<iI", cdr, 4)
-    return sec * 1_000_000_000 + nanosec
+STAGES = (("profile", "profile", "sensor_msgs/msg/PointCloud2"),
+          ("pose", "pose", "geometry_msgs/msg/PoseStamped"),
+          ("correction", "correction", "geometry_msgs/msg/TwistStamped"),
+          ("increment sent", "/motoplus_bridge/increment", "geometry_msgs/msg/TwistStamped"))
 
 
 def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float, skip: tuple[str, ...] = ()) -> dict:
-    import importlib
-
     from rclpy.qos import qos_profile_sensor_data
+
+    from ..nodes.bag_common import message_class
+    from ..nodes.messages import cdr_stamp_ns
 
     control_hz = 83.333 if rate_hz < 200 else 250.0
     graph = Graph(out / f"logs_{rate_hz:g}hz", client_name="profile_pose_latency")
@@ -45,16 +39,15 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
     try:
         exp = Experiment(graph, control_hz, noise, refine_model=refine_model,
                          profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None)
-        for name, topic, module, cls in STAGES:
+        for name, topic, msgtype in STAGES:
             if name in skip:
                 continue
 
             def on_message(data, info, name=name) -> None:
                 if recording[0]:
-                    latencies[name].append((info["source_timestamp"] - header_stamp_ns(data)) * 1e-6)
+                    latencies[name].append((info["source_timestamp"] - cdr_stamp_ns(data)) * 1e-6)
             qos = qos_profile_sensor_data if name == "profile" else 1000
-            graph.node.create_subscription(getattr(importlib.import_module(module), cls), topic, on_message,
-                                           qos, raw=True)
+            graph.node.create_subscription(message_class(msgtype), topic, on_message, qos, raw=True)
         exp.start()
         exp.bridge(arm=True)
         exp.wait(1.0)

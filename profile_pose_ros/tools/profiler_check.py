@@ -9,26 +9,17 @@ drops the driver counted.
 from __future__ import annotations
 
 import argparse
-import struct
 import sys
 import time
 
 import numpy as np
 
-from ..core.rotation import rotation_angle
 from . import processes
-from ..nodes.messages import rotation_translation
+from ..nodes.messages import cdr_stamp_ns, pose_difference, stamp_ns
 from .graph import Graph, free_port
-from .report import run_dir, summary, table, write_json
+from .report import nearest_stamp, run_dir, summary, table, write_json
 
 SINES = {"sine_amplitude": [2e-3, 1e-3, 1e-3, 2e-3, 1e-3, 2e-3], "sine_frequency": [0.5, 0.7, 0.3, 0.4, 0.6, 0.2]}
-CDR_STAMP = struct.Struct("<4xiI")  # encapsulation header, then header.stamp (sec, nanosec)
-
-
-def stamp_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
-
-
 class CheckRun:
     def __init__(self, graph: Graph, rate_hz: float, seconds: float, noise_std: float, drop_fraction: float,
                  seed: int = 0, watch_profiles: bool = False, baudrate: int = 1_000_000,
@@ -61,8 +52,7 @@ class CheckRun:
         self.truth[stamp_ns(msg.header.stamp)] = msg.pose  # converted when compared: keep up at 1 kHz
 
     def _on_profile(self, raw: bytes) -> None:
-        sec, nanosec = CDR_STAMP.unpack_from(raw)  # the stamp only: no need to decode 3200 points here
-        self.profile_stamps.append(sec * 1_000_000_000 + nanosec)
+        self.profile_stamps.append(cdr_stamp_ns(raw))  # the stamp only: no need to decode 3200 points here
 
     def _on_pose(self, msg) -> None:
         self.poses.append((stamp_ns(msg.header.stamp), msg.pose))
@@ -140,16 +130,13 @@ class CheckRun:
                             stamp_error_us=stamp_error_us)
         position, rotation, unmatched = [], [], 0
         for stamp, pose in self.poses:
-            r, t = rotation_translation(pose)
-            k = np.searchsorted(truth_stamps, stamp)
-            candidates = [truth_stamps[j] for j in (k - 1, k) if 0 <= j < len(truth_stamps)]
-            best = min(candidates, key=lambda s: abs(s - stamp))
-            if abs(best - stamp) > 0.5e9 / self.rate_hz:
+            best = nearest_stamp(truth_stamps, stamp, int(0.5e9 / self.rate_hz))
+            if best is None:
                 unmatched += 1
                 continue
-            true_r, true_t = rotation_translation(self.truth[best])
-            position.append(np.linalg.norm(t - true_t))
-            rotation.append(rotation_angle(r, true_r))
+            position_error, rotation_error = pose_difference(pose, self.truth[best])
+            position.append(position_error)
+            rotation.append(rotation_error)
         span = (truth_stamps[-1] - truth_stamps[0]) * 1e-9 if len(truth_stamps) > 1 else float("nan")
         return {
             "rate_hz": self.rate_hz, "achieved_rate_hz": (len(truth_stamps) - 1) / span,

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..bags import BagError, BagWriter, bag_info, read_messages
 from .param_files import node_parameters, parse_overrides
-from .report import summary, table
+from .report import nearest_stamp, summary, table
 
 PROFILE_TYPE = "sensor_msgs/msg/PointCloud2"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
@@ -58,25 +58,7 @@ def canonical(data: bytes, msgtype: str) -> bytes:
     return bytes(store.serialize_cdr(store.deserialize_cdr(data, msgtype), msgtype))
 
 
-def stamp_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
-
-
-def pose_difference(a, b) -> tuple[float, float]:
-    """(position m, rotation rad) between two geometry_msgs Pose."""
-    from ..core.rotation import rotation_angle
-    from ..nodes.messages import rotation_translation
-
-    (ra, ta), (rb, tb) = rotation_translation(a), rotation_translation(b)
-    return float(np.linalg.norm(ta - tb)), rotation_angle(ra, rb)
-
-
-def nearest_truth(truth: dict[int, object], stamps: np.ndarray, tolerance_ns: int = 500_000):
-    keys = np.array(sorted(truth), dtype=np.int64)
-    for stamp in stamps:
-        k = int(np.searchsorted(keys, stamp))
-        best = min((keys[j] for j in (k - 1, k) if 0 <= j < len(keys)), key=lambda s: abs(s - stamp), default=None)
-        yield truth[int(best)] if best is not None and abs(best - stamp) <= tolerance_ns else None
+TRUTH_TOLERANCE_NS = 500_000  # a pose's stamp (the estimated trigger time) within 0.5 ms of the true one
 
 
 def replay(bag: str | Path, values: dict, profile_topic: str | None = None, output: str | None = None) -> dict:
@@ -86,6 +68,7 @@ def replay(bag: str | Path, values: dict, profile_topic: str | None = None, outp
 
     from ..core.fast_wrapper import warm_up
     from ..core.gauge import Gauge
+    from ..nodes.messages import pose_difference, stamp_ns
     from ..nodes.pose_estimator import options_from, poses_from_profile
     from ..resources import DEFAULT_GAUGE, config_path
 
@@ -150,10 +133,11 @@ def replay(bag: str | Path, values: dict, profile_topic: str | None = None, outp
         "difference_rotation_urad": summary(d[1] * 1e6 for d in differences),
     }
     if truth:
+        truth_stamps = np.array(sorted(truth), dtype=np.int64)
         for name, poses in (("recorded", {s: deserialize_message(recorded[s], PoseStamped).pose for s in recorded}),
                             ("replayed", {s: replayed[s][2] for s in replayed})):
-            stamps = np.array(sorted(poses), dtype=np.int64)
-            errors = [pose_difference(poses[s], t) for s, t in zip(stamps, nearest_truth(truth, stamps)) if t]
+            matched = {s: nearest_stamp(truth_stamps, s, TRUTH_TOLERANCE_NS) for s in sorted(poses)}
+            errors = [pose_difference(poses[s], truth[t]) for s, t in matched.items() if t is not None]
             report[f"{name}_error_position_um"] = summary(e[0] * 1e6 for e in errors)
             report[f"{name}_error_rotation_urad"] = summary(e[1] * 1e6 for e in errors)
     return report

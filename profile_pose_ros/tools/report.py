@@ -17,6 +17,14 @@ def summary(values: Iterable[float]) -> dict:
             "p99": float(np.percentile(a, 99)), "max": float(a.max()), "min": float(a.min())}
 
 
+def nearest_stamp(sorted_stamps: np.ndarray, stamp: int, tolerance: int) -> int | None:
+    """The element of sorted_stamps nearest to stamp, or None if none is within tolerance."""
+    k = int(np.searchsorted(sorted_stamps, stamp))
+    candidates = [int(sorted_stamps[j]) for j in (k - 1, k) if 0 <= j < len(sorted_stamps)]
+    best = min(candidates, key=lambda s: abs(s - stamp), default=None)
+    return best if best is not None and abs(best - stamp) <= tolerance else None
+
+
 def table(headers: Sequence[str], rows: Sequence[Sequence], title: str = "") -> str:
     cells = [[str(h) for h in headers]] + [[c if isinstance(c, str) else f"{c:.3f}" for c in row] for row in rows]
     widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
