@@ -61,7 +61,8 @@ def test_two_namespaced_cells_side_by_side_without_cross_talk(ros, tmp_path) -> 
                         counters[f"{node}/{kv.key}"] = int(kv.value)
         client.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 100)
         published = lambda ns: counters.get(f"{ns}/profiler_driver/profiles_published", 0)  # noqa: E731
-        assert ros.spin_until(lambda: all(len(poses[ns]) >= 200 and published(ns) >= 300 for ns in CELLS),
+        assert ros.spin_until(lambda: all(len(poses[ns]) >= 200 and published(ns) >= 300
+                                          and f"{ns}/pose_estimator/profiles_received" in counters for ns in CELLS),
                               180.0), {ns: (len(profiles[ns]), len(poses[ns]), p.poll()) for ns, p in cells.items()}
         for ns, other in (CELLS, CELLS[::-1]):
             assert len(set(poses[ns]) & profiles[ns]) > 100  # poses of this cell's profiles ...
