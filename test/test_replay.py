@@ -2,6 +2,7 @@
 poses bit for bit, offline (profile_pose_replay) and through bag_player into a fresh pose_estimator."""
 from __future__ import annotations
 
+import pytest
 from geometry_msgs.msg import PoseStamped
 
 from profile_pose_ros.bags import read_messages
@@ -81,3 +82,16 @@ def test_recorded_profiles_replay_to_the_recorded_poses_bit_for_bit(tmp_path) ->
     rerun_poses = poses_by_stamp(rerun)
     assert len(rerun_poses) == report["replayed_poses"]  # every profile of the bag, a live loss or not
     assert {stamp: rerun_poses.get(stamp) for stamp in recorded_poses} == recorded_poses
+
+
+def test_replay_reads_the_estimators_values_from_a_cell_parameter_file(tmp_path) -> None:
+    from conftest import ROOT
+
+    values = estimator_values(str(ROOT / "config" / "cell.yaml"), {})  # its '/**' block names other nodes' frames
+    assert values["refine_model"] == "dense" and values["gauge_frame"] == "gauge"
+    own = tmp_path / "typo.yaml"
+    own.write_text("/**/pose_estimator:\n  ros__parameters:\n    refine_modle: dense\n")
+    with pytest.raises(ValueError, match="refine_modle"):
+        estimator_values(str(own), {})
+    with pytest.raises(ValueError, match="no_such"):
+        estimator_values(None, parse_overrides(["no_such:=1"]))

@@ -7,8 +7,9 @@ from pathlib import Path
 import yaml
 
 
-def node_parameters(path: str | Path, node_name: str, namespace: str = "") -> dict:
-    """The parameters `node_name` in `namespace` gets from the file: the `/**` block, then its own."""
+def node_parameters(path: str | Path, node_name: str, namespace: str = "", declared: set[str] | None = None) -> dict:
+    """The parameters `node_name` in `namespace` gets from the file: the `/**` block (only the `declared`
+    names, when given: the block is shared, and a node ignores what it does not declare), then its own."""
     data = yaml.safe_load(Path(path).read_text()) or {}
     if not isinstance(data, dict):
         raise ValueError(f"{path}: not a ROS 2 parameter file (no node blocks)")
@@ -19,7 +20,10 @@ def node_parameters(path: str | Path, node_name: str, namespace: str = "") -> di
     for key in dict.fromkeys(names):  # in order, without repeats
         block = data.get(key)
         if isinstance(block, dict):
-            values.update(block.get("ros__parameters") or {})
+            block_values = block.get("ros__parameters") or {}
+            if key == "/**" and declared is not None:
+                block_values = {k: v for k, v in block_values.items() if k in declared}
+            values.update(block_values)
     return values
 
 

@@ -29,7 +29,7 @@ def estimator_values(params_file: str | None, overrides: dict, namespace: str = 
     from ..nodes.pose_estimator import NODE_NAME, PARAMETERS
 
     values = {p.name: p.default for p in PARAMETERS}
-    given = dict(node_parameters(params_file, NODE_NAME, namespace) if params_file else {})
+    given = dict(node_parameters(params_file, NODE_NAME, namespace, set(values)) if params_file else {})
     given.update(overrides)
     unknown = sorted(set(given) - set(values))
     if unknown:
