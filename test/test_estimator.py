@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import (EstimatorOptions, estimate_pose, pose_error, render_profile, sample_pose)
-from profile_pose_ros.core.gauge_design import heightfield_gauge
+from profile_pose_ros.core.corners import detect_corners
+from profile_pose_ros.core.gauge_design import heightfield_gauge, random_gauge
+from profile_pose_ros.core.solver import PoseSolution, corner_residuals, refine, solution_cost
 from profile_pose_ros.core.rotation import so3_log
 
 
@@ -89,3 +91,32 @@ def test_unrefined_estimate_is_the_closed_form(gauge, rng):
                              max_reprojection_error=2e-3)  # the CF alone is far coarser on this gauge
     assert estimate.ok and not estimate.refined
     assert np.array_equal(estimate.R, estimate.closed_form.rotation)
+
+
+def _wrong_minima(n: int, gauges: int, poses: int, **options) -> tuple[int, int]:
+    """(poses whose estimate is a higher minimum than the one refined from the truth, poses searched)."""
+    wrong = searched = 0
+    rng = np.random.default_rng(100 + n)
+    for _ in range(gauges):
+        gauge = random_gauge(n, rng)
+        for _ in range(poses):
+            rotation, t = sample_pose(gauge, rng)
+            points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+            estimate = estimate_pose(points, gauge, max_reprojection_error=1.0, **options)
+            assert estimate.ok, estimate.reason
+            searched += estimate.search_starts > 0
+            corner_cov = detect_corners(points, n).covariance(None)
+            truth = refine(gauge, estimate.corners,
+                           PoseSolution(rotation, t, corner_residuals(gauge, estimate.corners, rotation, t)), corner_cov)
+            found = PoseSolution(estimate.R, estimate.t, corner_residuals(gauge, estimate.corners, estimate.R, estimate.t))
+            d = np.concatenate([so3_log(estimate.R.T @ truth.solution.rotation), truth.solution.translation - estimate.t])
+            higher = solution_cost(gauge, found, corner_cov, True) > solution_cost(gauge, truth.solution, corner_cov, True)
+            wrong += bool(higher and d @ np.linalg.solve(truth.covariance, d) > 1.0)
+    return wrong, searched
+
+
+@pytest.mark.parametrize("n", [4, 5])
+def test_basin_search_leaves_no_wrong_minimum_on_random_gauges(n):
+    wrong, searched = _wrong_minima(n, gauges=15, poses=10)
+    assert searched > 0  # these gauges have poorly determined poses: the search ran
+    assert wrong == 0

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
-from profile_pose_ros.core.gauge_design import RandomGaugeRules, face_widths, random_gauge
+from profile_pose_ros.core.gauge_design import RandomGaugeRules, distinct_directions, face_widths, random_gauge
 
 RULES = RandomGaugeRules()
 
@@ -18,6 +18,7 @@ def test_generated_gauges_keep_every_rule(n):
         assert np.max(gauge.face_slope_deg()) <= RULES.max_face_angle_deg + 1e-9
         assert np.max(np.abs(np.degrees(np.arctan(gauge.u)))) <= RULES.max_ridge_angle_deg + 1e-9
         assert np.ptp(gauge.corner_heights()) <= RULES.max_relief + 1e-12
+        assert distinct_directions(np.arctan(gauge.u), RULES.min_ridge_separation_deg) >= 4
         assert (gauge.width, gauge.length) == (RULES.width, RULES.length)
         sample_pose(gauge, rng)  # every corner visible at a pose of the range (raises otherwise)
 
@@ -43,3 +44,10 @@ def test_generated_gauges_estimate_for_n_at_least_5():
 def test_impossible_rules_say_so():
     with pytest.raises(ValueError, match="do not fit"):
         random_gauge(30, np.random.default_rng(0), RandomGaugeRules(min_face_width=0.005))
+
+
+def test_distinct_directions_counts_pairwise_separated_ridges():
+    degrees = np.radians([-10.0, -9.0, 0.0, 1.5, 2.9, 12.0])
+    assert distinct_directions(degrees, 3.0) == 3  # -10 | 0 (1.5 too close, 2.9 too close to 0) | 12
+    assert distinct_directions(degrees, 0.5) == 6
+    assert distinct_directions(np.radians([5.0, 5.5, 6.0, 20.0]), 3.0) == 2

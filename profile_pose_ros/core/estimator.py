@@ -7,6 +7,7 @@ the gauge (reprojection error under a bound, corners inside the gauge's footprin
 from __future__ import annotations
 
 import time
+from functools import lru_cache
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -14,8 +15,8 @@ import numpy as np
 from .corners import CornerOptions, detect_corners
 from .gauge import Gauge
 from .rotation import rotation_angle
-from .solver import (PoseSolution, SolverError, closed_form, corner_residuals, four_ridge_candidates, refine,
-                     residual_covariance)
+from .solver import (PoseSolution, Refinement, SolverError, closed_form, corner_residuals, four_ridge_candidates,
+                     refine, search_minima, solution_cost)
 
 WEIGHTINGS = ("corner_covariance", "uniform")
 REFINE_MODELS = ("corners", "dense")
@@ -31,6 +32,8 @@ class EstimatorOptions:
     max_reprojection_error: float = 1e-4  # m; reject poses whose corners miss their ridges by more
     footprint_margin: float = 2e-3  # m; mapped corners must lie this close to the gauge's footprint
     max_iterations: int = 30
+    search: bool = True  # look for a lower minimum around a poorly determined pose (solver.search_minima)
+    search_min_sigma: float = 2.5e-4  # m; search when the refined position's largest std exceeds this
 
     def __post_init__(self) -> None:
         if self.weighting not in WEIGHTINGS:
@@ -59,6 +62,7 @@ class PoseEstimate:
     iterations: int = 0
     fit_rms: float = float("nan")  # m, rms residual of the face line fits
     timings: dict = field(default_factory=dict)  # seconds per stage
+    search_starts: int = 0  # starting poses tried by the basin search (0: the pose was well determined)
 
 
 def ros_covariance(rotation: np.ndarray, local: np.ndarray) -> np.ndarray:
@@ -146,11 +150,26 @@ def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, e
                    covariance=ros_covariance(dense.rotation, dense.covariance_local), timings=timings)
 
 
-def _weighted_cost(gauge: Gauge, solution: PoseSolution, corner_cov: np.ndarray, weighted: bool) -> float:
-    r = solution.residuals.ravel()
-    if not weighted:
-        return float(r @ r)
-    return float(r @ np.linalg.solve(residual_covariance(gauge, solution.rotation, corner_cov), r))
+def position_sigma(position_covariance: np.ndarray) -> float:
+    """Largest standard deviation (m) of a 3x3 position covariance."""
+    return float(np.sqrt(max(np.linalg.eigvalsh(position_covariance)[-1], 0.0)))
+
+
+def needs_search(result: Refinement, cost: float, n_corners: int, weighted: bool, options: EstimatorOptions) -> bool:
+    """Search when the pose is poorly determined, or (weighted) when its cost is implausible for the noise."""
+    if not (options.search and options.refine):
+        return False
+    if position_sigma(result.covariance[3:, 3:]) > options.search_min_sigma:
+        return True
+    return weighted and cost > _implausible_cost(max(2 * n_corners - 6, 1))
+
+
+@lru_cache(maxsize=None)
+def _implausible_cost(dof: int) -> float:
+    """The chi-square value a correct minimum exceeds with probability 1e-4."""
+    from scipy.special import gammainccinv
+
+    return float(2.0 * gammainccinv(dof / 2.0, 1e-4))
 
 
 def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
@@ -182,12 +201,17 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) 
                 return PoseEstimate(False, f"refinement: {exc}", corners=corners, closed_form=candidate,
                                     timings=timings)
             continue
-        cost = _weighted_cost(gauge, attempt.solution, corner_cov, weighted)
+        cost = solution_cost(gauge, attempt.solution, corner_cov, weighted)
         if best is None or cost < best[0]:
             best = (cost, candidate, attempt)
     if best is None:
         return PoseEstimate(False, "refinement: no starting pose converged", corners=corners, timings=timings)
-    _, initial, result = best
+    cost, initial, result = best
+    search_starts = 0
+    if needs_search(result, cost, len(corners), weighted, options):
+        search_start = time.perf_counter()
+        result, search_starts = search_minima(gauge, corners, result, corner_cov, weighted, options.max_iterations)
+        timings["search"] = time.perf_counter() - search_start
     solution, refined, iterations = initial, False, 0
     if options.refine:
         solution, refined, iterations = result.solution, True, result.iterations
@@ -196,6 +220,7 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) 
     estimate = PoseEstimate(
         ok=not reason, reason=reason, corners=corners, reprojection_error=solution.reprojection_error,
         closed_form=initial, refined=refined, iterations=iterations, fit_rms=found.fit_rms, timings=timings,
+        search_starts=search_starts,
     )
     if not reason:
         estimate.R, estimate.t = solution.rotation, solution.translation

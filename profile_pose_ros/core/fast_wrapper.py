@@ -14,7 +14,8 @@ from . import aot
 from . import fast_codes as fast
 from .corners import (REASON_CORNERS_NOT_INCREASING, ROBUST_PASSES, REASON_X_NOT_INCREASING, reason_corner_count,
                       reason_corner_not_between, reason_steep_segment, reason_too_few_points)
-from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, reason_outside, reason_reprojection)
+from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_outside,
+                        reason_reprojection)
 from .gauge import Gauge
 from .solver import REASON_CF_DEGENERATE, PoseSolution, reason_cf_rank
 
@@ -123,6 +124,12 @@ def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -
     if status in (fast.CF_RANK, fast.CF_DEGENERATE):
         return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
     ok = status == fast.OK
+    if options.search and options.refine and (status in (fast.REPROJECTION, fast.OUTSIDE_FOOTPRINT) or (
+            ok and position_sigma(cov[:3, :3]) > options.search_min_sigma)):
+        from .estimator import estimate_plain
+
+        # poorly determined, or perhaps in a wrong basin: the numpy path, whose basin search decides
+        return estimate_plain(points, gauge, options)
     return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
                         corners=corners, reprojection_error=error, covariance=cov,
                         closed_form=PoseSolution(cf_rot, cf_t, cf_res), refined=options.refine,

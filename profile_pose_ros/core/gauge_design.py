@@ -49,6 +49,9 @@ class RandomGaugeRules:
     max_face_angle_deg: float = 40.0  # steepest face from horizontal (occlusion limit: beta >= 50 deg)
     min_face_angle_deg: float = 15.0  # flatter faces give weak corners
     max_ridge_angle_deg: float = 20.0  # ridge direction from the gauge's y axis
+    min_ridge_separation_deg: float = 3.0  # at least 4 ridges pairwise this far apart in direction: two
+    # nearly parallel ridges carry one ridge's information about the tilt, and a gauge with fewer than four
+    # distinct directions has cost minima centimetres apart that no start can tell apart reliably
     min_face_width: float = 0.004  # m, everywhere along the gauge
     max_relief: float = 0.045  # m
 
@@ -59,6 +62,15 @@ def face_widths(gauge: Gauge) -> np.ndarray:
     ridges = gauge.ridge_x(ys)
     edges = np.column_stack([np.full(2, -gauge.width / 2), ridges, np.full(2, gauge.width / 2)])
     return np.diff(edges, axis=1)
+
+
+def distinct_directions(angles: np.ndarray, separation_deg: float) -> int:
+    """Most ridges (angles in rad) that are pairwise at least separation_deg apart (greedy, optimal in 1-D)."""
+    count, last = 0, -np.inf
+    for angle in np.sort(np.degrees(np.asarray(angles, dtype=float))):
+        if angle >= last + separation_deg:
+            count, last = count + 1, angle
+    return count
 
 
 def random_gauge(n_ridges: int, rng: np.random.Generator, rules: RandomGaugeRules = RandomGaugeRules(),
@@ -80,7 +92,8 @@ def random_gauge(n_ridges: int, rng: np.random.Generator, rules: RandomGaugeRule
         near, far = ends(), ends()  # at y = -length/2 and y = +length/2: faces never cross
         ridge_x = 0.5 * (near + far)
         angles = np.arctan((far - near) / rules.length)
-        if np.max(np.abs(np.degrees(angles))) > rules.max_ridge_angle_deg:
+        if (np.max(np.abs(np.degrees(angles))) > rules.max_ridge_angle_deg
+                or distinct_directions(angles, rules.min_ridge_separation_deg) < 4):
             continue
         magnitudes = np.tan(np.radians(rng.uniform(rules.min_face_angle_deg, rules.max_face_angle_deg, n_ridges + 1)))
         signs = rng.choice([-1.0, 1.0]) * (-1.0) ** np.arange(n_ridges + 1)  # alternate: every ridge a corner

@@ -121,26 +121,40 @@ def four_ridge_candidates(gauge: Gauge, corners: np.ndarray) -> list[PoseSolutio
     return candidates
 
 
+def _ridge_rows(gauge: Gauge) -> np.ndarray:
+    """(n, 2, 3) C_i with r_i = C_i P_i - q_i: the x and z offsets from ridge i at P's y."""
+    n = len(gauge.u)
+    c = np.zeros((n, 2, 3))
+    c[:, 0, 0] = 1.0
+    c[:, 0, 1] = -gauge.u
+    c[:, 1, 1] = -gauge.w
+    c[:, 1, 2] = 1.0
+    return c
+
+
 def residual_jacobian(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     """(2n, 6) d r / d [delta, t] for the right perturbation R <- R exp([delta]x)."""
     n = len(corners)
-    jac = np.zeros((2 * n, 6))
-    for i in range(n):
-        p = np.array([corners[i, 0], 0.0, corners[i, 1]])
-        c = np.array([[1.0, -gauge.u[i], 0.0], [0.0, -gauge.w[i], 1.0]])
-        jac[2 * i:2 * i + 2, :3] = -c @ rotation @ skew(p)
-        jac[2 * i:2 * i + 2, 3:] = c
-    return jac
+    c = _ridge_rows(gauge)
+    # R skew(p) for p = [px, 0, pz]: columns R (p x e_k)
+    p = np.column_stack([corners[:, 0], np.zeros(n), corners[:, 1]])
+    skews = np.zeros((n, 3, 3))
+    skews[:, 0, 1], skews[:, 0, 2] = -p[:, 2], p[:, 1]
+    skews[:, 1, 0], skews[:, 1, 2] = p[:, 2], -p[:, 0]
+    skews[:, 2, 0], skews[:, 2, 1] = -p[:, 1], p[:, 0]
+    jac = np.empty((n, 2, 6))
+    jac[:, :, :3] = -np.einsum("nij,jk,nkl->nil", c, rotation, skews)
+    jac[:, :, 3:] = c
+    return jac.reshape(2 * n, 6)
 
 
 def residual_covariance(gauge: Gauge, rotation: np.ndarray, corner_covariance: np.ndarray) -> np.ndarray:
     """Covariance of the stacked residuals induced by the corners' covariance (linear in the corners)."""
     n = len(gauge.u)
+    blocks = _ridge_rows(gauge) @ rotation[:, [0, 2]]  # (n, 2, 2)
     mapping = np.zeros((2 * n, 2 * n))
-    plane = rotation[:, [0, 2]]
     for i in range(n):
-        c = np.array([[1.0, -gauge.u[i], 0.0], [0.0, -gauge.w[i], 1.0]])
-        mapping[2 * i:2 * i + 2, 2 * i:2 * i + 2] = c @ plane
+        mapping[2 * i:2 * i + 2, 2 * i:2 * i + 2] = blocks[i]
     return mapping @ corner_covariance @ mapping.T
 
 
@@ -157,7 +171,7 @@ class Refinement:
 
 
 def refine(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covariance: np.ndarray | None,
-           weighted: bool = True, max_iterations: int = 30) -> Refinement:
+           weighted: bool = True, max_iterations: int = 30, polish: bool = True) -> Refinement:
     """Levenberg-Marquardt on SO(3) x R^3 minimising the (weighted) corner residuals, eq. (15).
 
     weighted=True uses the inverse covariance of the residuals (maximum likelihood for the corner
@@ -195,7 +209,7 @@ def refine(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covari
     # Polish: LM's damping leaves the weak direction slightly short, and near the minimum the cost can
     # no longer tell steps apart (micrometre residuals, weights ~1e12). Undamped Gauss-Newton steps
     # converge to the minimiser itself, accepted unless they raise the cost beyond rounding.
-    for _ in range(POLISH_STEPS if max_iterations else 0):
+    for _ in range(POLISH_STEPS if max_iterations and polish else 0):
         jac = residual_jacobian(gauge, corners, rotation)
         step = np.linalg.solve(jac.T @ weight @ jac, -(jac.T @ weight @ r))
         new_rotation = rotation @ so3_exp(step[:3])
@@ -219,3 +233,102 @@ def refine(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covari
         covariance = np.linalg.inv(jac.T @ jac) * (r @ r) / dof
     solution = PoseSolution(rotation, translation, r.reshape(-1, 2))
     return Refinement(solution, 0.5 * (covariance + covariance.T), iterations)
+
+
+def solution_cost(gauge: Gauge, solution: PoseSolution, corner_covariance: np.ndarray | None, weighted: bool) -> float:
+    """The cost refine() minimises, at a solution (so minima from different starts can be compared)."""
+    r = solution.residuals.ravel()
+    if not weighted or corner_covariance is None or not corner_covariance.size:
+        return float(r @ r)
+    return float(r @ np.linalg.solve(residual_covariance(gauge, solution.rotation, corner_covariance), r))
+
+
+SEARCH_SCALES = (3.0, 8.0, 20.0)  # hop lengths along a weak mode, in its standard deviations
+SEARCH_MODES = 2  # the weakest directions of the pose
+SEARCH_ROUNDS = 3  # hop again from an improved minimum
+MAX_SUBSETS = 5
+TRIAGE_ITERATIONS = 4  # a few LM steps tell which basin a start is in
+TRIAGE_KEEP = 2  # starts refined fully per round
+TRIAGE_MARGIN = 1.5  # a triaged start this much above the best is not refined further
+
+
+@dataclass(frozen=True)
+class _Ridges:
+    """A subset of a gauge's ridges, enough for four_ridge_candidates()."""
+
+    u: np.ndarray
+    w: np.ndarray
+    q: np.ndarray
+
+
+def subset_starts(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
+    """Starting poses from 4-ridge subsets (n >= 5): each subset's null-space candidates.
+
+    The n-ridge linear closed form blends all corners into one least-squares answer; when the ridges are
+    nearly parallel it lands in the wrong basin, while a well-spread subset of four often does not.
+    """
+    n = len(corners)
+    if n < 5:
+        return []
+    subsets = [[(k + j) % n for j in range(4)] for k in range(min(n, MAX_SUBSETS))]
+    starts = []
+    for subset in subsets:
+        ridges = _Ridges(gauge.u[subset], gauge.w[subset], gauge.q[subset])
+        try:
+            candidates = four_ridge_candidates(ridges, corners[subset])
+        except (SolverError, np.linalg.LinAlgError):
+            continue
+        starts += [PoseSolution(c.rotation, c.translation, corner_residuals(gauge, corners, c.rotation, c.translation))
+                   for c in candidates]
+    return starts
+
+
+def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_covariance: np.ndarray | None,
+                  weighted: bool = True, max_iterations: int = 30) -> tuple[Refinement, int]:
+    """The lowest minimum found around a refined pose; returns it and how many starts were refined.
+
+    When the pose is poorly determined (a long, curved valley of the cost along the weak mode: tilt of
+    the laser plane with a shift along the ridges) a local method can stop in a neighbouring basin
+    several standard deviations away. Starts: the 4-ridge subsets' candidates, then hops of 3, 8 and
+    20 standard deviations along the two weakest modes of the current best, repeated while it improves.
+    """
+    best, best_cost, tried = found, solution_cost(gauge, found.solution, corner_covariance, weighted), 0
+
+    def improve(starts: list[PoseSolution]) -> bool:
+        """Triage every start with a few iterations, then refine the most promising ones fully."""
+        nonlocal best, best_cost, tried
+        scored = []
+        for start in starts:
+            try:
+                short = refine(gauge, corners, start, corner_covariance, weighted, TRIAGE_ITERATIONS, polish=False)
+            except np.linalg.LinAlgError:
+                continue
+            scored.append((solution_cost(gauge, short.solution, corner_covariance, weighted), short.solution))
+        tried += len(starts)
+        improved = False
+        for cost, solution in sorted(scored, key=lambda item: item[0])[:TRIAGE_KEEP]:
+            if cost >= best_cost * TRIAGE_MARGIN:
+                break
+            try:
+                result = refine(gauge, corners, solution, corner_covariance, weighted, max_iterations)
+            except np.linalg.LinAlgError:
+                continue
+            cost = solution_cost(gauge, result.solution, corner_covariance, weighted)
+            if cost < best_cost * (1.0 - 1e-6):
+                best, best_cost, improved = result, cost, True
+        return improved
+
+    improve(subset_starts(gauge, corners))
+    for _ in range(SEARCH_ROUNDS):
+        centre = best.solution
+        variances, directions = np.linalg.eigh(best.covariance)
+        hops = []
+        for j in range(1, SEARCH_MODES + 1):
+            mode = directions[:, -j] * np.sqrt(max(variances[-j], 0.0))
+            for hop in (sign * scale * mode for scale in SEARCH_SCALES for sign in (1.0, -1.0)):
+                rotation = centre.rotation @ so3_exp(hop[:3])
+                translation = centre.translation + hop[3:]
+                hops.append(PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation)))
+        if not improve(hops):
+            break
+    return best, tried
