@@ -24,6 +24,7 @@ EXECUTABLES = {
     "profile_pose_benchmark": "profile_pose_ros.tools.benchmark:main",
     "profile_pose_node_benchmark": "profile_pose_ros.tools.node_benchmark:main",
     "profile_pose_study": "profile_pose_ros.tools.study:main",
+    "profile_pose_gauge": "profile_pose_ros.tools.gauge_cli:main",
     "profile_pose_profiler_check": "profile_pose_ros.tools.profiler_check:main",
 }
 
