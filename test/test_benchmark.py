@@ -58,4 +58,8 @@ def test_quick_study_runs_end_to_end(tmp_path):
     for n in (4, 5):
         row = data["table_one"][f"n={n}"]
         assert row["failure_rate"] < 0.5 and row["corner_crlb_pos_rms_um"] > 0 and row["dense_crlb_pos_rms_um"] > 0
+        assert row["wrong_minima"] == 0 and 0 <= row["searched_share"] <= 1
+    assert "Outliers" in stdout and "Dense refinement" in stdout
+    assert data["outliers"]["1 % spikes, this package (robust fits)"]["poses"] == 4 * 5
+    assert data["dense"]["poses"] == 20 and data["dense"]["failed"] == 0
     assert list(tmp_path.glob("*/fig3_noise.png"))
