@@ -197,7 +197,7 @@ def design(args) -> int:
     import yaml
 
     header = (f"# Designed by profile_pose_gauge design (seed {args.seed}, {args.generations} generations) against\n"
-              f"# {args.reference}: worst corner-model CRLB over the required motion at {args.noise:g} um noise\n"
+              f"# {Path(args.reference).name}: worst corner-model CRLB over the required motion at {args.noise:g} um noise\n"
               f"# {thorough['designed'][0] * 1e6:.1f} um / {thorough['designed'][1] * 1e6:.1f} urad "
               f"(reference {thorough['reference'][0] * 1e6:.1f} um / {thorough['reference'][1] * 1e6:.1f} urad).\n"
               f"# Check it with: profile_pose_gauge check {args.out}\n")
