@@ -79,12 +79,9 @@ def test_check_command_on_the_shipped_gauge(tmp_path, capsys):
     report = json.loads(next(tmp_path.glob("*/check.json")).read_text())
     assert report["failed"] == []
     assert 1e-4 < report["worst_position_m"] < 5e-4
-    for mc in report["monte_carlo"].values():  # the estimator reaches the bound it reports (within MC spread)
-        bound = next(b for b in report["bounds"] if b["label"] in report["monte_carlo"])
-        assert mc["rejected"] == 0
-    worst = max((b for b in report["bounds"]), key=lambda b: b["corner_position"])
+    assert len(report["monte_carlo"]) == 2 and all(mc["rejected"] == 0 for mc in report["monte_carlo"].values())
+    worst = max(report["bounds"], key=lambda b: b["corner_position"])  # the estimator reaches the bound there
     assert 0.8 < report["monte_carlo"][worst["label"]]["position_rms"] / worst["corner_position"] < 1.25
-    assert bound["visible"]
 
 
 def test_check_command_says_which_rule_fails(tmp_path, capsys):
