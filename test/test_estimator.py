@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import (EstimatorOptions, estimate_pose, pose_error, render_profile, sample_pose)
-from profile_pose_ros.core.corners import detect_corners
+from profile_pose_ros.core.estimator import is_wrong_minimum
 from profile_pose_ros.core.gauge_design import heightfield_gauge, random_gauge
-from profile_pose_ros.core.solver import PoseSolution, corner_residuals, refine, solution_cost
 from profile_pose_ros.core.rotation import so3_log
 
 
@@ -105,13 +104,7 @@ def _wrong_minima(n: int, gauges: int, poses: int, **options) -> tuple[int, int]
             estimate = estimate_pose(points, gauge, max_reprojection_error=1.0, **options)
             assert estimate.ok, estimate.reason
             searched += estimate.search_starts > 0
-            corner_cov = detect_corners(points, n).covariance(None)
-            truth = refine(gauge, estimate.corners,
-                           PoseSolution(rotation, t, corner_residuals(gauge, estimate.corners, rotation, t)), corner_cov)
-            found = PoseSolution(estimate.R, estimate.t, corner_residuals(gauge, estimate.corners, estimate.R, estimate.t))
-            d = np.concatenate([so3_log(estimate.R.T @ truth.solution.rotation), truth.solution.translation - estimate.t])
-            higher = solution_cost(gauge, found, corner_cov, True) > solution_cost(gauge, truth.solution, corner_cov, True)
-            wrong += bool(higher and d @ np.linalg.solve(truth.covariance, d) > 1.0)
+            wrong += is_wrong_minimum(points, gauge, estimate, rotation, t)
     return wrong, searched
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from .corners import CornerOptions, detect_corners
 from .gauge import Gauge
-from .rotation import rotation_angle
+from .rotation import rotation_angle, so3_log
 from .solver import (PoseSolution, Refinement, SolverError, closed_form, corner_residuals, four_ridge_candidates,
                      refine, search_minima, solution_cost)
 
@@ -226,6 +226,25 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) 
         estimate.R, estimate.t = solution.rotation, solution.translation
         estimate.covariance = ros_covariance(solution.rotation, result.covariance)
     return estimate
+
+
+def pose_nees(estimate: PoseEstimate, rotation: np.ndarray, translation: np.ndarray) -> float:
+    """Normalised estimation error squared of an estimate against its own covariance (6 on average if honest)."""
+    d = np.concatenate([translation - estimate.t, so3_log(rotation @ estimate.R.T)])
+    return float(d @ np.linalg.solve(estimate.covariance, d))
+
+
+def is_wrong_minimum(points: np.ndarray, gauge: Gauge, estimate: PoseEstimate, rotation: np.ndarray,
+                     translation: np.ndarray) -> bool:
+    """True if an accepted estimate is a higher cost minimum than the one refined from the true pose and
+    more than one standard deviation (Mahalanobis) from it: the search stopped in the wrong basin."""
+    corner_cov = detect_corners(points, gauge.n_ridges).covariance(None)
+    at_truth = PoseSolution(rotation, translation, corner_residuals(gauge, estimate.corners, rotation, translation))
+    truth = refine(gauge, estimate.corners, at_truth, corner_cov)
+    found = PoseSolution(estimate.R, estimate.t, corner_residuals(gauge, estimate.corners, estimate.R, estimate.t))
+    d = np.concatenate([so3_log(estimate.R.T @ truth.solution.rotation), truth.solution.translation - estimate.t])
+    higher = solution_cost(gauge, found, corner_cov, True) > solution_cost(gauge, truth.solution, corner_cov, True)
+    return bool(higher and d @ np.linalg.solve(truth.covariance, d) > 1.0)
 
 
 def pose_error(rotation: np.ndarray, translation: np.ndarray, true_rotation: np.ndarray,

@@ -18,7 +18,7 @@ import numpy as np
 from .crlb import corner_crlb, dense_crlb, position_rotation_rms
 from .gauge import Gauge
 from .gauge_design import RandomGaugeRules, distinct_directions, face_widths
-from .poses import LOOKING_DOWN, corners_visible
+from .poses import LOOKING_DOWN, corners_visible, mid_height
 from .render import DEFAULT_PROFILER, ProfilerModel
 from .rotation import so3_exp
 
@@ -38,36 +38,39 @@ def adjacent_face_angles_deg(gauge: Gauge) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
+def _at_most(rule: str, value: float, limit: float, unit: str, slack: float = 0.0) -> RuleCheck:
+    return RuleCheck(rule, float(value), float(limit), bool(value <= limit + slack), unit)
+
+
+def _at_least(rule: str, value: float, limit: float, unit: str, slack: float = 0.0) -> RuleCheck:
+    return RuleCheck(rule, float(value), float(limit), bool(value >= limit - slack), unit)
+
+
 def check_rules(gauge: Gauge, rules: RandomGaugeRules = RandomGaugeRules(),
                 profiler: ProfilerModel = DEFAULT_PROFILER, min_corner_angle_deg: float = 10.0) -> list[RuleCheck]:
-    """Every fabrication and visibility rule with its value, its limit and whether it holds."""
-    heights = gauge.corner_heights()
-    nominal = nominal_pose(gauge, profiler)
-    checks = [
-        RuleCheck("steepest face from horizontal", float(np.max(gauge.face_slope_deg())), rules.max_face_angle_deg,
-                  bool(np.max(gauge.face_slope_deg()) <= rules.max_face_angle_deg + 1e-9), "deg"),
-        RuleCheck("narrowest face (either end)", float(np.min(face_widths(gauge)) * 1e3), rules.min_face_width * 1e3,
-                  bool(np.min(face_widths(gauge)) >= rules.min_face_width - 1e-12), "mm"),
-        RuleCheck("smallest bend between adjacent faces", float(np.min(adjacent_face_angles_deg(gauge))),
-                  min_corner_angle_deg, bool(np.min(adjacent_face_angles_deg(gauge)) >= min_corner_angle_deg), "deg"),
-        RuleCheck(f"ridge directions >= {rules.min_ridge_separation_deg:g} deg apart",
-                  float(distinct_directions(np.arctan(gauge.u), rules.min_ridge_separation_deg)), 4.0,
-                  distinct_directions(np.arctan(gauge.u), rules.min_ridge_separation_deg) >= 4, "ridges"),
-        RuleCheck("relief (highest - lowest top point)", float(np.ptp(heights) * 1e3), rules.max_relief * 1e3,
-                  bool(np.ptp(heights) <= rules.max_relief + 1e-12), "mm"),
+    """Every fabrication and visibility rule with its value, its limit and whether it holds (lengths in mm)."""
+    seen = corners_visible(gauge, *nominal_pose(gauge, profiler), profiler)
+    return [
+        _at_most("steepest face from horizontal", np.max(gauge.face_slope_deg()), rules.max_face_angle_deg, "deg",
+                 1e-9),
+        _at_least("narrowest face (either end)", np.min(face_widths(gauge)) * 1e3, rules.min_face_width * 1e3, "mm",
+                  1e-9),
+        _at_least("smallest bend between adjacent faces", np.min(adjacent_face_angles_deg(gauge)),
+                  min_corner_angle_deg, "deg"),
+        _at_least(f"ridge directions >= {rules.min_ridge_separation_deg:g} deg apart",
+                  distinct_directions(np.arctan(gauge.u), rules.min_ridge_separation_deg), 4, "ridges"),
+        _at_most("relief (highest - lowest top point)", np.ptp(gauge.corner_heights()) * 1e3, rules.max_relief * 1e3,
+                 "mm", 1e-9),
         RuleCheck("width against the profiler's near field of view", gauge.width * 1e3, profiler.width_near * 1e3,
                   bool(gauge.width < profiler.width_near), "mm"),
-        RuleCheck("all corners seen at the nominal pose", float(corners_visible(gauge, *nominal, profiler)), 1.0,
-                  bool(corners_visible(gauge, *nominal, profiler)), ""),
+        RuleCheck("all corners seen at the nominal pose", float(seen), 1.0, bool(seen), ""),
     ]
-    return checks
 
 
 def nominal_pose(gauge: Gauge, profiler: ProfilerModel = DEFAULT_PROFILER) -> tuple[np.ndarray, np.ndarray]:
     """Straight down over the gauge centre, its mid-height in the middle of the depth range."""
-    mid_height = 0.5 * (gauge.base_z + float(np.max(gauge.corner_heights())))
     standoff = 0.5 * (profiler.z_near + profiler.z_far)
-    return LOOKING_DOWN.copy(), np.array([0.0, 0.0, mid_height + standoff])
+    return LOOKING_DOWN.copy(), np.array([0.0, 0.0, mid_height(gauge) + standoff])
 
 
 def _reach(visible, step: float, limit: float) -> float:
@@ -144,7 +147,7 @@ class RequiredMotion:
 def motion_poses(gauge: Gauge, motion: RequiredMotion = RequiredMotion(), thorough: bool = False) -> list[tuple]:
     """Poses at the extremes of the motion: (label, R, t). thorough=True: every combination (80 poses),
     else 16 that still visit every extreme of every axis (for the design search's inner loop)."""
-    mid_height = 0.5 * (gauge.base_z + float(np.max(gauge.corner_heights())))
+    middle = mid_height(gauge)
     tilts = [None, 0.0, 0.5 * np.pi, np.pi, 1.5 * np.pi]
     poses = []
     index = 0
@@ -158,7 +161,7 @@ def motion_poses(gauge: Gauge, motion: RequiredMotion = RequiredMotion(), thorou
                     tilt = np.zeros(3) if tilt_azimuth is None else motion.tilt * np.array(
                         [np.cos(tilt_azimuth), np.sin(tilt_azimuth), 0.0])
                     rotation = so3_exp(tilt) @ so3_exp(np.array([0.0, 0.0, yaw_sign * motion.yaw])) @ LOOKING_DOWN
-                    aim = np.array([sx * motion.x, sy * motion.y, mid_height])
+                    aim = np.array([sx * motion.x, sy * motion.y, middle])
                     label = (f"standoff {standoff * 1e3:.0f} mm, tilt "
                              f"{'0' if tilt_azimuth is None else f'{np.degrees(motion.tilt):.0f} deg @ {np.degrees(tilt_azimuth):.0f}'}"
                              f", yaw {yaw_sign * np.degrees(motion.yaw):+.0f} deg, x {sx * motion.x * 1e3:+.0f} y "

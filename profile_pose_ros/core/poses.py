@@ -36,10 +36,15 @@ def corners_visible(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray,
     return True
 
 
+def mid_height(gauge: Gauge) -> float:
+    """Halfway between the base and the highest top point: where standoffs are measured to."""
+    return 0.5 * (gauge.base_z + float(np.max(gauge.corner_heights())))
+
+
 def sample_pose(gauge: Gauge, rng: np.random.Generator, pose_range: PoseRange = PoseRange(),
                 profiler: ProfilerModel = DEFAULT_PROFILER, max_tries: int = 1000) -> tuple[np.ndarray, np.ndarray]:
     """A random (R, t) in the range with every corner visible (rejection sampling)."""
-    mid_height = 0.5 * (gauge.base_z + float(np.max(gauge.corner_heights())))
+    middle = mid_height(gauge)
     for _ in range(max_tries):
         tilt = pose_range.max_tilt * np.sqrt(rng.uniform())  # uniform over the cone's cap
         azimuth = rng.uniform(0, 2 * np.pi)
@@ -47,7 +52,7 @@ def sample_pose(gauge: Gauge, rng: np.random.Generator, pose_range: PoseRange = 
         yaw = rng.uniform(-pose_range.max_yaw, pose_range.max_yaw)
         rotation = so3_exp(tilt * tilt_axis) @ so3_exp(np.array([0.0, 0.0, yaw])) @ LOOKING_DOWN
         aim = np.array([rng.uniform(-1, 1) * pose_range.max_offset, rng.uniform(-1, 1) * pose_range.max_offset,
-                        mid_height])
+                        middle])
         translation = aim - rng.uniform(*pose_range.standoff) * rotation[:, 2]
         if corners_visible(gauge, rotation, translation, profiler):
             return rotation, translation

@@ -5,8 +5,13 @@ import numpy as np
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x, so that skew(a) @ b == cross(a, b)."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    """[v]x, so that skew(a) @ b == cross(a, b); for (..., 3) input, one matrix per vector."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
 
 def so3_exp(v: np.ndarray) -> np.ndarray:

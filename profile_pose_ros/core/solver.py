@@ -136,12 +136,7 @@ def residual_jacobian(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray) -
     """(2n, 6) d r / d [delta, t] for the right perturbation R <- R exp([delta]x)."""
     n = len(corners)
     c = _ridge_rows(gauge)
-    # R skew(p) for p = [px, 0, pz]: columns R (p x e_k)
-    p = np.column_stack([corners[:, 0], np.zeros(n), corners[:, 1]])
-    skews = np.zeros((n, 3, 3))
-    skews[:, 0, 1], skews[:, 0, 2] = -p[:, 2], p[:, 1]
-    skews[:, 1, 0], skews[:, 1, 2] = p[:, 2], -p[:, 0]
-    skews[:, 2, 0], skews[:, 2, 1] = -p[:, 1], p[:, 0]
+    skews = skew(np.column_stack([corners[:, 0], np.zeros(n), corners[:, 1]]))  # p = [px, 0, pz]
     jac = np.empty((n, 2, 6))
     jac[:, :, :3] = -np.einsum("nij,jk,nkl->nil", c, rotation, skews)
     jac[:, :, 3:] = c
@@ -285,7 +280,7 @@ def subset_starts(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
 
 def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_covariance: np.ndarray | None,
                   weighted: bool = True, max_iterations: int = 30) -> tuple[Refinement, int]:
-    """The lowest minimum found around a refined pose; returns it and how many starts were refined.
+    """The lowest minimum found around a refined pose; returns it and how many starts were tried.
 
     When the pose is poorly determined (a long, curved valley of the cost along the weak mode: tilt of
     the laser plane with a shift along the ridges) a local method can stop in a neighbouring basin

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import Gauge, estimate_pose, pose_error, render_profile, sample_pose
-from ..core.rotation import so3_log
+from ..core.estimator import pose_nees
 from ..resources import DEFAULT_GAUGE, config_path
 from .node_process import NodeProcess
 from .report import run_dir, summary, table, write_json
@@ -30,10 +30,9 @@ def _errors(estimate, rotation, translation) -> dict:
     cf = estimate.closed_form
     cf_pos, cf_rot = pose_error(cf.rotation, cf.translation, rotation, translation)
     pos, rot = pose_error(estimate.R, estimate.t, rotation, translation)
-    d = np.concatenate([translation - estimate.t, so3_log(rotation @ estimate.R.T)])
     return {"cf_reproj": cf.reprojection_error, "cf_pos": cf_pos, "cf_rot": cf_rot,
             "ref_reproj": estimate.reprojection_error, "ref_pos": pos, "ref_rot": rot,
-            "nees": float(d @ np.linalg.solve(estimate.covariance, d)),
+            "nees": pose_nees(estimate, rotation, translation),
             **{f"t_{k}": v for k, v in estimate.timings.items()}}
 
 

@@ -164,12 +164,12 @@ def design(args) -> int:
     if not np.isfinite(reference_worst[0]):
         raise SystemExit(f"profile_pose_gauge: the reference gauge {args.reference} loses a corner inside the "
                          "required motion; pick a smaller motion or another reference")
+    from tqdm import tqdm
+
     best = None
     for n in args.ridges:
         space = DesignSpace(n, (args.width[0] * 1e-3, args.width[1] * 1e-3), rules, motion, noise, reference_worst,
                             length_range=(args.length[0] * 1e-3, args.length[1] * 1e-3))
-        from tqdm import tqdm
-
         bar = tqdm(total=args.generations, desc=f"n = {n}", file=sys.stderr)
 
         def step(xk, convergence=None, bar=bar):

@@ -22,11 +22,10 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from ..core import estimate_pose, pose_error, render_profile, sample_pose
-from ..core.corners import detect_corners
 from ..core.crlb import corner_crlb, dense_crlb, position_rotation_rms
+from ..core.estimator import is_wrong_minimum, pose_nees
 from ..core.gauge_design import random_gauge
-from ..core.rotation import so3_log
-from ..core.solver import PoseSolution, corner_residuals, paper_closed_form, refine, solution_cost
+from ..core.solver import paper_closed_form
 from .report import run_dir, summary, table, write_json
 
 TABLE_NOISE = 5e-6
@@ -43,23 +42,13 @@ def error_row(gauge, estimate, rotation, t, n: int) -> list[float]:
     if not estimate.ok or estimate.closed_form is None:
         return [np.nan] * 7
     cf = estimate.closed_form if n > 4 else paper_closed_form(gauge, estimate.corners)
-    d = np.concatenate([t - estimate.t, so3_log(rotation @ estimate.R.T)])
-    nees = float(d @ np.linalg.solve(estimate.covariance, d))
-    return [cf.reprojection_error, np.linalg.norm(t - cf.translation), np.linalg.norm(so3_log(rotation @ cf.rotation.T)),
-            estimate.reprojection_error, np.linalg.norm(d[:3]), np.linalg.norm(d[3:]), nees]
+    return [cf.reprojection_error, *pose_error(cf.rotation, cf.translation, rotation, t), estimate.reprojection_error,
+            *pose_error(estimate.R, estimate.t, rotation, t), pose_nees(estimate, rotation, t)]
 
 
-def wrong_minimum(gauge, points, estimate, rotation, t) -> float:
-    """1 if the estimate is a higher minimum than the one refined from the truth (more than 1 sigma away)."""
-    if not estimate.ok:
-        return np.nan
-    corner_cov = detect_corners(points, gauge.n_ridges).covariance(None)
-    truth = refine(gauge, estimate.corners, PoseSolution(rotation, t, corner_residuals(gauge, estimate.corners,
-                                                                                        rotation, t)), corner_cov)
-    found = PoseSolution(estimate.R, estimate.t, corner_residuals(gauge, estimate.corners, estimate.R, estimate.t))
-    d = np.concatenate([so3_log(estimate.R.T @ truth.solution.rotation), truth.solution.translation - estimate.t])
-    higher = solution_cost(gauge, found, corner_cov, True) > solution_cost(gauge, truth.solution, corner_cov, True)
-    return float(higher and d @ np.linalg.solve(truth.covariance, d) > 1.0)
+def wrong_minimum(points, gauge, estimate, rotation, t) -> float:
+    """1.0 / 0.0 for an accepted estimate (estimator.is_wrong_minimum), NaN for a rejected one."""
+    return float(is_wrong_minimum(points, gauge, estimate, rotation, t)) if estimate.ok else np.nan
 
 
 def gauge_trial(task: tuple) -> dict:
@@ -93,8 +82,8 @@ def gauge_trial(task: tuple) -> dict:
                 spiky_ours = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0), rotation, t, n)[4]
                 spiky_paper = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0,
                                                              **PAPER_PIPELINE), rotation, t, n)[4]
-            extra.append([wrong_minimum(gauge, points, ours, rotation, t),
-                          wrong_minimum(gauge, points, paper, rotation, t), float(ours.search_starts > 0),
+            extra.append([wrong_minimum(points, gauge, ours, rotation, t), wrong_minimum(points, gauge, paper, rotation, t),
+                          float(ours.search_starts > 0),
                           spiky_ours, spiky_paper])
             corner = position_rotation_rms(corner_crlb(gauge, rotation, t, TABLE_NOISE))
             dense = position_rotation_rms(dense_crlb(gauge, rotation, t, TABLE_NOISE)) if with_dense else (np.nan,) * 2
