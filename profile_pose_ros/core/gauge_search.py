@@ -70,22 +70,12 @@ class DesignSpace:
         return max(position / self.reference[0], rotation / self.reference[1])
 
 
-class _Score:
-    """Picklable objective for the worker processes."""
-
-    def __init__(self, space: DesignSpace):
-        self.space = space
-
-    def __call__(self, x: np.ndarray) -> float:
-        return self.space.score(x)
-
-
 def design_gauge(space: DesignSpace, seed: int = 0, max_generations: int = 60, population: int = 12,
                  workers: int = 2, callback=None):
     """(best gauge, its score, scipy's result) of a differential-evolution search."""
     from scipy.optimize import differential_evolution
 
-    result = differential_evolution(_Score(space), space.bounds(), seed=seed, maxiter=max_generations,
+    result = differential_evolution(space.score, space.bounds(), seed=seed, maxiter=max_generations,
                                     popsize=population, tol=1e-3, polish=False, workers=workers,
                                     updating="deferred" if workers != 1 else "immediate", callback=callback)
     return space.gauge(result.x), float(result.fun), result

@@ -62,21 +62,19 @@ def load(path: str) -> Gauge:
 
 def monte_carlo(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, noise: float, seed: int) -> dict:
     """rms position / rotation error of the estimator at one pose over many noisy profiles."""
-    from ..core import estimate_pose, render_profile
-    from ..core.rotation import so3_log
+    from ..core import estimate_pose, pose_error, render_profile
 
     rng = np.random.default_rng(seed)
-    position, rotation_error, rejected = [], [], 0
+    errors, rejected = [], 0
     for _ in range(MONTE_CARLO_PROFILES):
         estimate = estimate_pose(render_profile(gauge, rotation, translation, noise_std=noise, rng=rng), gauge)
         if not estimate.ok:
             rejected += 1
             continue
-        position.append(np.linalg.norm(estimate.t - translation))
-        rotation_error.append(np.linalg.norm(so3_log(rotation @ estimate.R.T)))
-    return {"position_rms": float(np.sqrt(np.mean(np.square(position)))) if position else float("nan"),
-            "rotation_rms": float(np.sqrt(np.mean(np.square(rotation_error)))) if position else float("nan"),
-            "rejected": rejected, "profiles": MONTE_CARLO_PROFILES}
+        errors.append(pose_error(estimate.R, estimate.t, rotation, translation))
+    rms = np.sqrt(np.mean(np.square(errors), axis=0)) if errors else np.full(2, np.nan)
+    return {"position_rms": float(rms[0]), "rotation_rms": float(rms[1]), "rejected": rejected,
+            "profiles": MONTE_CARLO_PROFILES}
 
 
 def check(args) -> int:
