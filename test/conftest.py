@@ -31,6 +31,20 @@ def unique_domain_id() -> int:
     return 1 + (os.getpid() * 13 + next(_domains)) % 200
 
 
+def paced(action, period: float = 0.005):
+    """action() at most once per period: publishing on every spin turn floods a subscription's queue, and on a
+    slow machine the message a node handles is then as old as depth x turn time (stale for a node that checks
+    stamps); a real sender runs at the profile rate."""
+    last = [-float("inf")]
+
+    def run(*args, **kwargs) -> None:
+        if time.monotonic() - last[0] >= period:
+            last[0] = time.monotonic()
+            action(*args, **kwargs)
+
+    return run
+
+
 class RosHarness:
     """A fresh Context on its own domain, an executor, and helpers to spin until a condition."""
 

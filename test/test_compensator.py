@@ -14,6 +14,8 @@ from profile_pose_ros.core.poses import LOOKING_DOWN
 from profile_pose_ros.nodes.messages import pose_stamped, pose_with_covariance
 from profile_pose_ros.nodes.pd_compensator import PdCompensatorNode
 
+from conftest import paced
+
 
 def filtered_error(declared_variance: np.ndarray, noise: np.ndarray) -> np.ndarray:
     rng = np.random.default_rng(0)
@@ -66,6 +68,7 @@ def test_stale_pose_gives_zero_correction_within_three_periods(ros) -> None:
     translation = np.array([0.0, 0.0, 0.45])
     covariance = np.diag([1e-10] * 3 + [1e-8] * 3)
 
+    @paced
     def publish_pose() -> None:
         pose = pose_stamped(LOOKING_DOWN, translation, Time(nanoseconds=time.time_ns()).to_msg(), "gauge")
         poses.publish(pose_with_covariance(pose, covariance))
