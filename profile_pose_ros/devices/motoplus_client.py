@@ -1,9 +1,10 @@
 """The bridge's side of the MotoPlus protocol without ROS: a socket thread paced by the controller.
 
 Disarmed until arm() is called; then HELLO, and for every STATE exactly one CORRECTION with the
-increment `increment()` returns (clamped here as well as on the controller). Any fault, protocol error
-or disconnect disarms it, and only another arm() re-arms: it never moves the robot on its own after a
-fault. It reconnects with back-off; stop() sends STOP.
+increment `increment(now)` returns (clamped per cycle and to what is left of the total offset bound, here as
+well as on the controller), checked last by core.safety.SafetyMonitor. Any fault, protocol error or
+disconnect disarms it, and only another arm() re-arms: it never moves the robot on its own after a fault.
+It reconnects with back-off; stop() sends STOP.
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from typing import Callable
 import numpy as np
 
 from ..core import motoplus_protocol as mp
+from ..core.safety import SafetyMonitor
 
 DISCONNECTED, CONNECTED, ARMING, ARMED = "disconnected", "connected", "arming", "armed"
 
@@ -39,17 +41,23 @@ class BridgeCounters:
     corrections: int = 0
     zero_corrections: int = 0  # sent because the correction was stale or missing
     clamped: int = 0
+    offset_limited: int = 0  # cut to what is left of the total offset bound
     faults: int = 0
     connections: int = 0
 
 
 class MotoPlusClient:
     def __init__(self, host: str, port: int, limits: SessionLimits,
-                 increment: Callable[[], np.ndarray | None], on_state: Callable[[mp.State, float], None],
+                 increment: Callable[[float], tuple[np.ndarray, float] | None],
+                 on_state: Callable[[mp.State, float], None], max_age_s: Callable[[], float] = lambda: 0.05,
                  log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0,
-                 on_sent: Callable[[tuple[int, ...], float], None] | None = None) -> None:
-        """on_sent(units, wall time just after the send): each CORRECTION as it left, for latency records."""
+                 on_sent: Callable[[tuple[int, ...], float, float], None] | None = None) -> None:
+        """increment(now, wall time): (this period's move in m and rad, the trigger time of the correction it
+        comes from), or None to hold still; max_age_s: the monitor's staleness limit;
+        on_sent(units, trigger time, wall time just after the send): each moving CORRECTION as it left."""
         self.host, self.port, self.limits = host, port, limits
+        self.monitor = SafetyMonitor(mp.metres_to_units(limits.max_step), mp.metres_to_units(limits.max_offset),
+                                     max_age_s)
         self.on_sent = on_sent
         self.increment, self.on_state, self.log = increment, on_state, log
         self.backoff_min, self.backoff_max = backoff_min, backoff_max
@@ -77,6 +85,7 @@ class MotoPlusClient:
 
     def arm(self) -> None:
         """Ask for a session; sends HELLO now if connected, else on the next connection."""
+        self.monitor.rearmed()
         self._arm_requested.set()
 
     def disarm(self, reason: str) -> None:
@@ -115,6 +124,7 @@ class MotoPlusClient:
                 self.log(f"bridge socket thread: {self.last_error}")
             if self.state in (ARMED, ARMING):  # a session lost without STOP is a fault: re-arm by hand
                 self._arm_requested.clear()
+                self.monitor.fault()
                 self.counters.faults += 1
                 self.log(f"session lost ({self.last_error}); disarmed until ~/start")
             self._close()
@@ -160,6 +170,7 @@ class MotoPlusClient:
             self.last_error = f"controller FAULT {body.code}: {body.text}"
             self.counters.faults += 1
             self._arm_requested.clear()
+            self.monitor.fault()
             self.state = CONNECTED
             self.log(self.last_error)
         elif isinstance(body, mp.Stop):
@@ -167,16 +178,34 @@ class MotoPlusClient:
             self.state = CONNECTED
 
     def _correct(self) -> None:
-        step = self.increment()
-        if step is None:
-            units = (0,) * 6
+        now = time.time()
+        move = self.increment(now)
+        units, stamp = (0,) * 6, None
+        if move is None:
             self.counters.zero_corrections += 1
         else:
-            units, cut = mp.clamp(mp.metres_to_units(step), mp.metres_to_units(self.limits.max_step))
-            self.counters.clamped += int(cut)
-        if self._send(mp.Correction(units, self.limits.frame)) and self.on_sent is not None:
-            self.on_sent(units, time.time())
+            step, stamp = move
+            units = self._limit(mp.metres_to_units(step))
+        offset = self.last_state.offset if self.last_state is not None else None
+        broken = self.monitor.check(units, self.state == ARMED, stamp, now, offset)
+        if broken:
+            units, stamp = (0,) * 6, None
+        if self._send(mp.Correction(units, self.limits.frame)) and stamp is not None and self.on_sent is not None:
+            self.on_sent(units, stamp, time.time())
         self.counters.corrections += 1
+        if broken:
+            self.disarm(f"safety monitor: {self.monitor.last_violation} (sent zero instead)")
+
+    def _limit(self, units: tuple[int, ...]) -> tuple[int, ...]:
+        """Clamped per cycle, then to what is left of the total offset bound (the controller would FAULT)."""
+        units, cut = mp.clamp(units, mp.metres_to_units(self.limits.max_step))
+        self.counters.clamped += int(cut)
+        if self.last_state is None:
+            return units
+        bound = mp.metres_to_units(self.limits.max_offset)
+        limited = tuple(int(np.clip(u, -b - o, b - o)) for u, o, b in zip(units, self.last_state.offset, bound))
+        self.counters.offset_limited += int(limited != units)
+        return limited
 
     def _send(self, body: mp.Body) -> bool:
         with self._send_lock:

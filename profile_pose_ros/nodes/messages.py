@@ -5,7 +5,7 @@ import struct
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamped
 from sensor_msgs.msg import PointCloud2, PointField
 
 from ..core.profile_cloud import Field, decode_profile, encode_profile
@@ -60,6 +60,16 @@ def pose_stamped(rotation: np.ndarray, translation: np.ndarray, stamp: Time, fra
     msg.header.stamp = stamp
     msg.header.frame_id = frame_id
     fill_pose(msg.pose, rotation, translation)
+    return msg
+
+
+def twist_stamped(values, stamp: Time, frame_id: str) -> TwistStamped:
+    """[vx vy vz wx wy wz] (or an increment: m and rad) as a TwistStamped."""
+    msg = TwistStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z = (float(x) for x in values[:3])
+    msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z = (float(x) for x in values[3:6])
     return msg
 
 

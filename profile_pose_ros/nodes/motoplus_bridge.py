@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -23,7 +22,7 @@ from ..core import motoplus_protocol as mp
 from ..core.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
-from .messages import fill_pose
+from .messages import fill_pose, twist_stamped
 from .parameters import Param, declare_all
 from .run import run_node
 
@@ -70,7 +69,6 @@ class MotoPlusBridgeNode(Node):
         self._lock = threading.Lock()
         self._velocities: list[np.ndarray] = []  # corrections received since the last increment
         self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity)
-        self._used_stamp_ns: int | None = None  # stamp of the newest correction in the increment being sent
         self._ages: list[float] = []  # trigger-to-send times (s) since the last diagnostics
         self._sent: list[tuple[int, tuple[int, ...]]] = []  # increments sent, not yet published
         self.stale_periods = 0
@@ -83,6 +81,7 @@ class MotoPlusBridgeNode(Node):
         self.create_service(Trigger, "~/stop", self._on_stop)
         logger = self.get_logger()
         self.client = MotoPlusClient(v["host"], v["port"], self.limits, self._increment, self._on_state,
+                                     max_age_s=lambda: self.values["max_age"],
                                      log=lambda text: logger.warn(text, throttle_duration_sec=1.0),
                                      on_sent=self._on_sent)
         if v["arm_on_start"]:
@@ -104,29 +103,25 @@ class MotoPlusBridgeNode(Node):
             self._velocities.append(velocity)
             self._latest = (stamp, velocity)
 
-    def _increment(self) -> np.ndarray | None:
+    def _increment(self, now: float) -> tuple[np.ndarray, float] | None:
         """This period's move (socket thread): the mean velocity commanded during the period times the
-        period, or None (a zero increment) when the newest correction is older than max_age."""
+        period, with the newest correction's trigger time; None (a zero increment) when that correction is
+        older than max_age or there is none."""
         with self._lock:
             received, self._velocities = self._velocities, []
             latest = self._latest
-        if latest is None or time.time() - latest[0] * 1e-9 > self.values["max_age"]:
+        if latest is None or now - latest[0] * 1e-9 > self.values["max_age"]:
             self.stale_periods += 1
-            self._used_stamp_ns = None
             return None
-        self._used_stamp_ns = latest[0]
         velocity = np.mean(received, axis=0) if received else latest[1]
-        return velocity * self.limits.period_s
+        return velocity * self.limits.period_s, latest[0] * 1e-9
 
-    def _on_sent(self, units: tuple[int, ...], sent: float) -> None:
-        """Socket thread, right after a CORRECTION left: note it; the executor publishes it. Publishing here
-        would make the thread that must answer every STATE within the period wait for the GIL."""
-        stamp_ns = self._used_stamp_ns
-        if stamp_ns is None:  # a zero increment for a stale correction: not an increment of the chain
-            return
+    def _on_sent(self, units: tuple[int, ...], stamp: float, sent: float) -> None:
+        """Socket thread, right after a moving CORRECTION left: note it; the executor publishes it.
+        Publishing here would make the thread that must answer every STATE within the period wait for the GIL."""
         with self._lock:
-            self._ages.append(sent - stamp_ns * 1e-9)
-            self._sent.append((stamp_ns, units))
+            self._ages.append(sent - stamp)
+            self._sent.append((int(round(stamp * 1e9)), units))
         self._sent_guard.trigger()
 
     def _publish_increments(self) -> None:
@@ -135,12 +130,8 @@ class MotoPlusBridgeNode(Node):
         with self._lock:
             sent, self._sent = self._sent, []
         for stamp_ns, units in sent:
-            msg = TwistStamped()
-            msg.header.stamp = Time(nanoseconds=stamp_ns).to_msg()
-            msg.header.frame_id = self.values["base_frame"]
-            (msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z,
-             msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z) = mp.units_to_metres(units)
-            self.increment_pub.publish(msg)
+            self.increment_pub.publish(twist_stamped(mp.units_to_metres(units), Time(nanoseconds=stamp_ns).to_msg(),
+                                                     self.values["base_frame"]))
 
     def _on_state(self, state: mp.State, host_time: float) -> None:
         pose = np.array(mp.units_to_metres(state.pose))
@@ -166,7 +157,11 @@ class MotoPlusBridgeNode(Node):
     # ---------------------------------------------------------------- diagnostics
     def _publish_diagnostics(self) -> None:
         c = self.client
-        if c.state == ARMED:
+        monitor = c.monitor
+        if monitor.total_violations:
+            level, message = ERROR, (f"{c.state}; the safety monitor stopped {monitor.total_violations} increments "
+                                     f"(last: {monitor.last_violation})")
+        elif c.state == ARMED:
             level, message = OK, "armed, correcting"
             if self.stale_periods:
                 level, message = WARN, f"armed; {self.stale_periods} periods with a stale correction (zero sent)"
@@ -176,7 +171,10 @@ class MotoPlusBridgeNode(Node):
             level, message = WARN, f"{c.state}: not moving the robot ({c.last_error or 'not armed'})"
         values = {"state": c.state, "states": c.counters.states, "corrections": c.counters.corrections,
                   "zero_corrections": c.counters.zero_corrections, "clamped": c.counters.clamped,
-                  "faults": c.counters.faults, "connections": c.counters.connections,
+                  "offset_limited": c.counters.offset_limited, "faults": c.counters.faults,
+                  "connections": c.counters.connections, "safety_checked": monitor.checked,
+                  "safety_violations": monitor.total_violations,
+                  **{f"safety_{name}": count for name, count in monitor.violations.items()},
                   "last_error": c.last_error or "none", "stale_periods": self.stale_periods}
         if c.last_state is not None:
             values.update({"controller_status": c.last_state.status, "echoed_seq": c.last_state.echoed_seq,

@@ -18,7 +18,7 @@ from rclpy.time import Time
 
 from ..core.compensator import AxisKalman, Gains, Mounting, covariance_in_base, pd_velocity, pose_vector_in_base
 from .diagnostics import OK, WARN, diagnostic_array
-from .messages import rotation_translation
+from .messages import rotation_translation, twist_stamped
 from .parameters import Param, declare_all, updated
 from .run import run_node
 
@@ -116,12 +116,7 @@ class PdCompensatorNode(Node):
         self.corrections += 1
 
     def _publish(self, velocity: np.ndarray, stamp) -> None:
-        msg = TwistStamped()
-        msg.header.stamp = stamp
-        msg.header.frame_id = self.values["base_frame"]
-        msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z = (float(x) for x in velocity[:3])
-        msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z = (float(x) for x in velocity[3:])
-        self.correction_pub.publish(msg)
+        self.correction_pub.publish(twist_stamped(velocity, stamp, self.values["base_frame"]))
 
     def _watchdog(self) -> None:
         if self.reference is None or time.time() - self.last_pose_stamp > self.values["max_pose_age"]:

@@ -47,9 +47,12 @@ class Session:
 class RobotController:
     def __init__(self, arm: Arm, on_period: Callable[[], None] | None = None, host: str = "127.0.0.1",
                  port: int = 0, period_ticks: int = 3, faults: ControllerFaults | None = None,
-                 seed: int = 3) -> None:
+                 seed: int = 3, on_applied: Callable[[float, tuple[int, ...]], None] | None = None) -> None:
+        """on_applied(wall time, increment in units): every armed period, what the arm was told to move
+        (zeros when it held): the ground truth the safety checks compare the bridge against."""
         self.arm = arm
         self.on_period = on_period
+        self.on_applied = on_applied
         self.period_ticks = period_ticks
         self.faults = faults or ControllerFaults()
         self.rng = np.random.default_rng(seed)
@@ -60,6 +63,8 @@ class RobotController:
         self.faults_raised = 0
         self.clamped = 0
         self.states_sent = 0
+        self.session_end = ""  # why the last session ended: STOP, a FAULT, the peer leaving, a test's disconnect
+        self._applied: tuple[int, ...] = (0,) * 6
         self._cut = False  # the last applied increment was clamped
         self._seq = 0
         self._lock = threading.RLock()
@@ -118,10 +123,13 @@ class RobotController:
             limit = self.faults.disconnect_after_periods
             if limit and session.periods >= limit:
                 self.faults.disconnect_after_periods = 0
-                self._end_session()
+                self._end_session("injected disconnect")
                 return
             self._apply(session)
+            applied = self._applied
             state = self._state(session)
+        if self.on_applied is not None:
+            self.on_applied(time.time(), applied)
         if self.faults.state_drop_fraction and self.rng.random() < self.faults.state_drop_fraction:
             return
         if self.faults.state_delay_s > 0:
@@ -131,6 +139,7 @@ class RobotController:
 
     def _apply(self, session: Session) -> None:
         """The newest CORRECTION of the last period, clamped; none for 3 periods: hold still."""
+        self._applied = (0,) * 6
         if session.pending is None:
             session.periods_without += 1
             self._cut = False
@@ -145,6 +154,7 @@ class RobotController:
             self._fault(mp.FAULT_LIMIT, f"total offset {total.tolist()} beyond {bound.tolist()}")
             return
         self.correction = total
+        self._applied = tuple(int(v) for v in step)
         self.clamped += int(cut)
         session.applied_seq = seq
         self._cut = cut
@@ -191,7 +201,9 @@ class RobotController:
                         break
         with self._lock:
             if self.server.peer is conn:
-                self.session = None  # the peer went away: disarmed, holding still
+                if self.session is not None:  # the peer went away: disarmed, holding still
+                    self.session_end = "the bridge disconnected"
+                self.session = None
                 self.server.drop(conn)
 
     def _handle(self, frame: mp.Frame) -> bool:
@@ -223,7 +235,7 @@ class RobotController:
         if isinstance(body, mp.Correction):
             session.pending = (frame.seq, body)
         elif isinstance(body, mp.Stop):
-            self._end_session()
+            self._end_session("STOP")
             return False
         elif isinstance(body, mp.Fault):
             self._fault(body.code, f"bridge reported: {body.text}")
@@ -238,8 +250,9 @@ class RobotController:
         self.session = None  # disarmed before the peer hears why
         self._seq += 1
         self.server.send(mp.encode(mp.Frame(self._seq, ack, mp.Fault(code, text))))
-        self._end_session()
+        self._end_session(f"FAULT {code}: {text}")
 
-    def _end_session(self) -> None:
+    def _end_session(self, reason: str) -> None:
+        self.session_end = reason
         self.session = None
         self.server.drop()

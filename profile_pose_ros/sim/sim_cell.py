@@ -7,15 +7,16 @@ import sys
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.time import Time
 
 from ..core.gauge import Gauge, GaugeError
+from ..core.motoplus_protocol import units_to_metres
 from ..core.render import DEFAULT_PROFILER
 from ..nodes.diagnostics import OK, WARN, diagnostic_array
-from ..nodes.messages import pose_stamped
+from ..nodes.messages import pose_stamped, twist_stamped
 from ..nodes.parameters import Param, declare_all, updated
 from ..nodes.run import run_node
 from ..resources import DEFAULT_GAUGE, config_path
@@ -133,9 +134,10 @@ class SimCellNode(Node):
                 raise ValueError(f"control_period {v['control_period']} is not a multiple of the 4 ms clock")
             on_period = self.cell.robot_signal if v["profiler_trigger"] == "robot" else None
             self.robot = RobotController(arm, on_period, v["host"], v["robot_port"], ticks,
-                                         ControllerFaults(), seed=v["seed"] + 3)
+                                         ControllerFaults(), seed=v["seed"] + 3, on_applied=self._publish_applied)
         self._apply_faults(v)
         self.truth_pub = self.create_publisher(PoseStamped, "/sim/ground_truth", 100)
+        self.applied_pub = self.create_publisher(TwistStamped, "/sim/robot_increment", 100)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.cell.start()
@@ -190,6 +192,11 @@ class SimCellNode(Node):
         stamp = Time(nanoseconds=truth.time_ns).to_msg()
         self.truth_pub.publish(pose_stamped(truth.rotation, truth.translation, stamp, self.values["gauge_frame"]))
 
+    def _publish_applied(self, wall_time: float, units: tuple[int, ...]) -> None:
+        """The increment the controller applied this armed period (m, rad): what the robot was really told."""
+        stamp = Time(nanoseconds=int(wall_time * 1e9)).to_msg()
+        self.applied_pub.publish(twist_stamped(units_to_metres(units), stamp, "base"))
+
     def _publish_diagnostics(self) -> None:
         p, m, c = self.cell.profiler, self.cell.mcu, self.cell
         faults = {k: self.values[k] for k in sorted(_FAULTS)}
@@ -205,7 +212,7 @@ class SimCellNode(Node):
             r = self.robot
             values.update({"robot_port": r.port, "robot_armed": r.session is not None, "robot_states": r.states_sent,
                            "robot_faults": r.faults_raised, "robot_last_fault": r.last_fault[1] or "none",
-                           "robot_clamped": r.clamped,
+                           "robot_clamped": r.clamped, "robot_session_end": r.session_end or "none",
                            "arm_offset_um": [round(x * 1e6, 1) for x in r.arm.position[:3]]})
         self.diagnostics_pub.publish(diagnostic_array(self, "cell",
                                                       "sim_cell", level, message, values))
