@@ -41,7 +41,9 @@ PARAMETERS = [
           "Bound on the total offset from the start pose per axis (m, rad).", read_only=True),
     Param("watchdog", 0.5, "The controller ends the session after this long without a frame (s).", 0.05, 5.0,
           read_only=True),
-    Param("max_age", 0.05, "A correction older than this (by its stamp) moves nothing (s).", 0.001, 1.0),
+    Param("max_age", 0.024, "A correction older than this (by its stamp: the trigger time) moves nothing (s). "
+          "The robot stops within max_age + one period of losing its data: 2 periods keeps that within 3.",
+          0.001, 1.0),
     Param("frame", "base", "Cartesian frame of the increments: base, robot, tool or user.", read_only=True),
     Param("base_frame", "base", "frame_id of robot_state."),
     Param("arm_on_start", False, "Arm (send HELLO) as soon as connected, without ~/start."),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import time
@@ -71,6 +72,8 @@ class Graph:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.domain_id = domain_id if domain_id is not None else 1 + (os.getpid() * 7) % 200
         self.processes: dict[str, subprocess.Popen] = {}
+        self.commands: dict[str, list[str]] = {}  # name -> how it was started, for restart()
+        self.restarts: dict[str, int] = {}
         self.rclpy = rclpy
         self.context = Context()
         rclpy.init(context=self.context, domain_id=self.domain_id)
@@ -94,6 +97,11 @@ class Graph:
     def reported(self, node: str) -> bool:
         """Whether `node` of this graph's namespace has published /diagnostics."""
         return any(name.startswith(self._status_prefix(node)) for name in self.diagnostics)
+
+    def forget(self, node: str) -> None:
+        """Drop what `node` last reported, so that only its next report counts (e.g. after a restart)."""
+        for name in [n for n in self.diagnostics if n.startswith(self._status_prefix(node))]:
+            del self.diagnostics[name]
 
     def diagnostic(self, node: str, key: str, default: str = "") -> str:
         """A value from the newest /diagnostics of `node` of this graph's namespace."""
@@ -121,12 +129,35 @@ class Graph:
             f.write(f"ROS_DOMAIN_ID={self.domain_id} {' '.join(command)}\n")
         with open(self.log_dir / "params.yaml", "a") as f:  # what each node was given, for a replay
             f.write(yaml.safe_dump({executable: {"ros__parameters": dict(params or {})}}, sort_keys=False))
-        process = processes.start(command, self.domain_id, self.log_dir / f"{name}.log")
+        self.commands[name] = command
+        return self._launch(name)
+
+    def _launch(self, name: str) -> subprocess.Popen:
+        count = self.restarts.get(name, 0)
+        log = self.log_dir / (f"{name}.log" if not count else f"{name}.restart{count}.log")
+        process = processes.start(self.commands[name], self.domain_id, log)
         self.processes[name] = process
         return process
 
     def stop(self, name: str) -> int:
         return processes.stop(self.processes.pop(name))
+
+    def kill(self, name: str, signum: int = signal.SIGKILL, timeout: float = 10.0) -> int:
+        """Fault injection: signal a node and wait for it to end (it is no longer watched for dying)."""
+        process = self.processes.pop(name)
+        process.send_signal(signum)
+        try:
+            process.wait(timeout)
+        finally:
+            processes.stop(process)
+        return process.returncode
+
+    def restart(self, name: str) -> subprocess.Popen:
+        """Start a killed node again with the very command it was first started with."""
+        if name in self.processes:
+            raise RuntimeError(f"{name} is still running")
+        self.restarts[name] = self.restarts.get(name, 0) + 1
+        return self._launch(name)
 
     def spin_until(self, condition, timeout: float) -> bool:
         """Spin the client until condition() or the deadline; a node process that died is an error."""

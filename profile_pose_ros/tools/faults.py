@@ -1,0 +1,280 @@
+"""profile_pose_faults: the faults a factory has, injected into the running closed loop on the simulated cell
+(sim_cell -> profiler_driver -> pose_estimator -> pd_compensator -> motoplus_bridge, each its own process),
+with what the safety invariants saw, the time to a safe stop and the time to recover, per fault.
+
+Each fault hits mid-motion (the reference has just stepped 0.5 mm), is held for a second, then cleared the
+way it would be in a cell: the fault goes away by itself, a killed node is restarted, and after a fault that
+ended the robot session the operator re-arms (~/start). The ground truth of what the robot was told is
+sim_cell's /sim/robot_increment (what its controller applied each armed period). Checked from it:
+no increment above the clamp; no motion without a fresh pose (no moving correction computed from a pose
+triggered within max_age + one period before it); no session between a session-ending fault and the re-arm; no controller FAULT for the offset bound;
+and, from /sim/ground_truth, no pose far from the truth (a damaged profile must never give a pose).
+Beside these, the bridge's own monitor (its safety_* diagnostics). Safe stop: from the injection to the
+last increment that moved the robot; it must be within 3 control periods for the faults that take away
+the data or the session.
+"""
+from __future__ import annotations
+
+import argparse
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
+from .experiment import Experiment
+from .graph import Graph
+from .report import nearest_stamp, run_dir, table, write_json
+
+STEP_M = 5e-4  # the reference step the fault hits in the middle of
+MID_MOTION_S = 0.06
+HOLD_S = 1.0
+SETTLE_S = 1.0
+BAD_POSE_M = 1e-3  # a wrong pose, not noise: the shipped gauge's weak y axis has ~75 um std, its worst glint poses ~0.35 mm
+STOP_PERIODS = 3
+TRUTH_MATCH_NS = 1_500_000  # under half the shortest trigger period (4 ms)
+_DEFAULTS = {p.name: p.default for p in BRIDGE_PARAMETERS}
+
+
+@dataclass(frozen=True)
+class Fault:
+    name: str
+    inject: Callable[["FaultRun"], None]
+    clear: Callable[["FaultRun"], None]
+    must_stop: bool  # it takes away the data or the session: the robot must stop within STOP_PERIODS
+    rearm: bool = False  # it ends the robot session: the operator re-arms once it has cleared
+    session_end: str = ""  # how the controller must see the session end, if it does (e.g. STOP)
+
+
+def _sim(**values) -> Callable[["FaultRun"], None]:
+    return lambda run: run.graph.set_parameters("sim_cell", values)
+
+
+FAULTS = (
+    Fault("controller ends the session mid-motion", _sim(disconnect_after_periods=1), lambda run: None,
+          must_stop=True, rearm=True),
+    Fault("STATE 30 ms late", _sim(state_delay_ms=30.0), _sim(state_delay_ms=0.0), must_stop=False),
+    Fault("half the STATEs dropped", _sim(state_drop_fraction=0.5), _sim(state_drop_fraction=0.0), must_stop=False),
+    Fault("profiler stalls (no frames)", _sim(drop_fraction=1.0), _sim(drop_fraction=0.0), must_stop=True),
+    Fault("every profiler frame with a flipped bit", _sim(corrupt_fraction=1.0, corrupt_mode="flip"),
+          _sim(corrupt_fraction=0.0, corrupt_mode="mixed"), must_stop=True),
+    Fault("30 % of profiler frames damaged (mixed)", _sim(corrupt_fraction=0.3), _sim(corrupt_fraction=0.0),
+          must_stop=False),
+    Fault("profiler connection closed every 20 frames", _sim(close_after_frames=20), _sim(close_after_frames=0),
+          must_stop=False),
+    Fault("glints on 2 % of points", _sim(spike_fraction=0.02), _sim(spike_fraction=0.0), must_stop=False),
+    Fault("trigger MCU silent", _sim(mcu_silent=True), _sim(mcu_silent=False), must_stop=True),
+    Fault("pose_estimator SIGKILL, restarted", lambda run: run.graph.kill("pose_estimator"),
+          lambda run: run.graph.restart("pose_estimator"), must_stop=True),
+    Fault("motoplus_bridge SIGKILL, restarted", lambda run: run.graph.kill("motoplus_bridge"),
+          lambda run: run.restart_bridge(), must_stop=True, rearm=True),
+    Fault("motoplus_bridge SIGTERM, restarted", lambda run: run.graph.kill("motoplus_bridge", signal.SIGTERM),
+          lambda run: run.restart_bridge(), must_stop=True, rearm=True, session_end="STOP"),
+    Fault("CPU overload (3 busy processes)", lambda run: run.load(3), lambda run: run.load(0), must_stop=False),
+)
+
+
+class FaultRun:
+    def __init__(self, graph: Graph, rate_hz: float, refine_model: str) -> None:
+        from geometry_msgs.msg import TwistStamped
+
+        self.graph = graph
+        self.exp = Experiment(graph, rate_hz, 5e-6, refine_model=refine_model)
+        self.period = self.exp.period
+        self.max_step = np.array(_DEFAULTS["max_step"])
+        self.max_age = float(_DEFAULTS["max_age"])
+        self.applied: list[tuple[float, np.ndarray]] = []
+        self.moving_corrections: list[float] = []
+        graph.node.create_subscription(TwistStamped, "/sim/robot_increment", self._on_applied, 1000)
+        graph.node.create_subscription(TwistStamped, "correction", self._on_correction, 1000)
+        self._hogs: list[subprocess.Popen] = []
+        self._sign = 1.0
+
+    def _on_applied(self, msg) -> None:
+        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        v = msg.twist
+        self.applied.append((t, np.array([v.linear.x, v.linear.y, v.linear.z, v.angular.x, v.angular.y,
+                                          v.angular.z])))
+
+    def _on_correction(self, msg) -> None:
+        """A non-zero correction is stamped with the trigger time of the pose it was computed from (the
+        compensator's zeros for a stale pose are stamped with their own time and move nothing)."""
+        v = msg.twist
+        if any((v.linear.x, v.linear.y, v.linear.z, v.angular.x, v.angular.y, v.angular.z)):
+            self.moving_corrections.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+
+    def load(self, processes: int) -> None:
+        for hog in self._hogs:
+            hog.kill()
+            hog.wait()
+        self._hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(processes)]
+
+    def restart_bridge(self) -> None:
+        self.graph.forget("motoplus_bridge")  # its old "armed" report must not pass for the new process's
+        self.graph.restart("motoplus_bridge")
+
+    def rearm(self) -> float:
+        """The operator: once the bridge reports it is connected (and not armed), ~/start."""
+        self.graph.forget("motoplus_bridge")
+        if not self.graph.spin_until(lambda: self.graph.diagnostic("motoplus_bridge", "state") == "connected",
+                                     30.0):
+            raise RuntimeError("the bridge did not reconnect to the controller")
+        requested = time.time()
+        self.exp.bridge(arm=True)
+        return requested
+
+    def start(self) -> None:
+        self.exp.start()
+        self.exp.bridge(arm=True)
+        self.exp.wait(1.0)
+
+    def episode(self, fault: Fault) -> dict:
+        self._sign = -self._sign
+        self.exp.reference(np.array([self._sign * STEP_M, 0.0, 0.0]))
+        self.exp.wait(MID_MOTION_S)
+        monitor_before = self._monitor_violations()
+        end_before = self.graph.diagnostic("sim_cell", "robot_session_end", "none")
+        fault.inject(self)
+        t_inject = time.time()  # in effect: sim_cell has applied the parameter, or the killed process has exited
+        self.exp.wait(HOLD_S)
+        session_end = self.graph.diagnostic("sim_cell", "robot_session_end", "none")
+        t_clear = time.time()
+        fault.clear(self)
+        t_rearm = self.rearm() if fault.rearm else None
+        resume = t_rearm or t_clear
+        recovered = self.graph.spin_until(lambda: self._first_motion(resume) is not None, 60.0)
+        self.exp.wait(SETTLE_S)
+        t_end = time.time()
+        result = self._evaluate(fault, t_inject, t_clear, t_rearm, t_end, recovered, monitor_before)
+        result["session_end"] = session_end if session_end != end_before else "-"
+        if fault.session_end and session_end != fault.session_end:
+            result["ok"] = False
+        return result
+
+    def _monitor_violations(self) -> int:
+        return int(self.graph.diagnostic("motoplus_bridge", "safety_violations", "0") or 0)
+
+    def _moving(self, start: float, end: float) -> list[float]:
+        return [t for t, step in self.applied if start <= t <= end and np.any(step != 0.0)]
+
+    def _first_motion(self, after: float) -> float | None:
+        return next((t for t, step in self.applied if t > after and np.any(step != 0.0)), None)
+
+    def _pose_errors(self, start: float, end: float) -> list[float]:
+        """|estimated - true position| of each pose in the window, matched by trigger time (the driver's
+        stamp comes from the MCU's clock, so it is the truth's to within its sync error, not bit-equal)."""
+        truth = {int(round(t * 1e9)): p for t, p in self.exp.truth if start - 0.1 <= t <= end + 0.1}
+        stamps = np.array(sorted(truth), dtype=np.int64)
+        errors = []
+        for t, p in self.exp.poses:
+            if start <= t <= end:
+                match = nearest_stamp(stamps, int(round(t * 1e9)), TRUTH_MATCH_NS)
+                if match is not None:
+                    errors.append(float(np.linalg.norm(p - truth[match])))
+        return errors
+
+    def _evaluate(self, fault: Fault, t_inject: float, t_clear: float, t_rearm: float | None, t_end: float,
+                  recovered: bool, monitor_before: int) -> dict:
+        window = [(t, s) for t, s in self.applied if t_inject - 0.2 <= t <= t_end]
+        clamp = sum(bool(np.any(np.abs(s) > self.max_step + 1.5e-6)) for _, s in window)
+        fresh = np.array(sorted(self.moving_corrections))  # trigger times of the poses behind moving corrections
+        stale = 0
+        for t, s in window:
+            if np.any(s != 0.0):
+                k = np.searchsorted(fresh, t, side="right")
+                newest = fresh[k - 1] if k else -np.inf
+                stale += int(t - newest > self.max_age + self.period + 2e-3)
+        session_before_rearm = 0
+        if fault.rearm and t_rearm is not None:
+            session_before_rearm = sum(1 for t, _ in window if t_inject + 2 * self.period < t < t_rearm)
+        errors = self._pose_errors(t_inject, t_end)
+        bad_poses = sum(e > BAD_POSE_M for e in errors)
+        last_fault = self.graph.diagnostic("sim_cell", "robot_last_fault", "none")
+        offset_faults = int("total offset" in last_fault)
+        moving = self._moving(t_inject, t_clear)
+        stop_s = max(moving) - t_inject if moving else 0.0
+        first = self._first_motion(t_rearm or t_clear)
+        during = [t for t, _ in self.exp.poses if t_inject <= t <= t_clear]
+        result = {
+            "fault": fault.name, "must_stop": fault.must_stop,
+            "stop_ms": stop_s * 1e3, "stop_periods": stop_s / self.period,
+            "moving_periods_during_fault": len(moving),
+            "rearmed_after_s": (t_rearm - t_clear) if t_rearm else None,
+            "recovered": recovered, "recovered_after_s": (first - t_clear) if first else None,
+            "poses_during_fault": len(during), "max_pose_error_um": float(max(errors) * 1e6) if errors else None,
+            "violations": {"clamp": clamp, "stale_motion": stale, "session_before_rearm": session_before_rearm,
+                           "offset_fault": offset_faults, "bad_poses": bad_poses,
+                           "bridge_monitor": max(0, self._monitor_violations() - monitor_before)},
+        }
+        result["stopped_in_time"] = (not fault.must_stop) or result["stop_periods"] <= STOP_PERIODS
+        result["ok"] = recovered and result["stopped_in_time"] and not any(result["violations"].values())
+        return result
+
+    def close(self) -> None:
+        self.load(0)
+
+
+def run(rate_hz: float, refine_model: str, out, names: list[str] | None = None) -> list[dict]:
+    faults = [f for f in FAULTS if names is None or any(n.lower() in f.name.lower() for n in names)]
+    graph = Graph(out / "logs", client_name="profile_pose_faults")
+    results = []
+    fault_run = None
+    try:
+        fault_run = FaultRun(graph, rate_hz, refine_model)
+        fault_run.start()
+        for fault in faults:
+            print(f"  {fault.name} ...", flush=True)
+            results.append(fault_run.episode(fault))
+    finally:
+        if fault_run is not None:
+            fault_run.close()
+        graph.close()
+    return results
+
+
+def print_table(results: list[dict], period_ms: float) -> None:
+    rows = []
+    for r in results:
+        v = r["violations"]
+        rows.append((r["fault"], "yes" if r["must_stop"] else "no",
+                     f"{r['stop_ms']:.0f} ms = {r['stop_periods']:.1f}" if r["moving_periods_during_fault"] or
+                     r["must_stop"] else "-",
+                     str(r["moving_periods_during_fault"]),
+                     f"{r['recovered_after_s']:.2f} s" if r["recovered_after_s"] is not None else "NO",
+                     f"{r['rearmed_after_s']:.2f} s" if r["rearmed_after_s"] is not None else "-",
+                     str(r["poses_during_fault"]),
+                     f"{r['max_pose_error_um']:.0f}" if r["max_pose_error_um"] is not None else "-",
+                     "/".join(str(v[k]) for k in ("clamp", "stale_motion", "session_before_rearm", "offset_fault",
+                                                  "bad_poses", "bridge_monitor")),
+                     "ok" if r["ok"] else "FAIL"))
+    print(table(("fault", "must stop", "last motion after (periods)", "moving periods", "moving again after",
+                 "re-armed after", "poses in fault", "max pose err um", "violations*", "verdict"), rows,
+                f"fault injection on the running closed loop ({period_ms:g} ms control period)"))
+    print("* clamp / motion on a stale pose / session before the re-arm / offset-bound FAULT / poses > "
+          f"{BAD_POSE_M * 1e6:.0f} um from the truth / the bridge's own monitor")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rate", type=float, default=83.333, help="control rate: 83.333 (12 ms) or 250 (4 ms)")
+    parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
+    parser.add_argument("--only", nargs="+", help="only the faults whose names contain one of these words")
+    parser.add_argument("--out", default="runs")
+    args = parser.parse_args(argv)
+    out = run_dir(args.out, "faults")
+    print(f"injecting faults into the closed loop at {args.rate:g} Hz (logs in {out / 'logs'})", flush=True)
+    results = run(args.rate, args.refine_model, out, args.only)
+    print_table(results, 12.0 if args.rate < 200 else 4.0)
+    write_json(out / "faults.json", {"rate_hz": args.rate, "results": results})
+    failed = [r["fault"] for r in results if not r["ok"]]
+    print(f"results: {out / 'faults.json'}; " + (f"FAILED: {', '.join(failed)}" if failed else
+                                                 "every fault: no violation, stopped in time, recovered"))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,18 @@
+"""Fault injection on the running closed loop (profile_pose_faults): every process its own, sim_cell's
+controller the witness of what the robot was told."""
+from __future__ import annotations
+
+from profile_pose_ros.tools import faults
+
+
+def test_faults_on_the_running_loop_break_no_invariant_and_clear(tmp_path) -> None:
+    results = {r["fault"]: r for r in faults.run(83.333, "corners", tmp_path, [
+        "ends the session", "stalls", "flipped bit", "SIGTERM"])}
+    assert len(results) == 4
+    for name, r in results.items():
+        assert not any(r["violations"].values()), (name, r["violations"])
+        assert r["recovered"], name
+    assert results["profiler stalls (no frames)"]["poses_during_fault"] == 0
+    assert results["every profiler frame with a flipped bit"]["poses_during_fault"] == 0
+    assert results["controller ends the session mid-motion"]["moving_periods_during_fault"] == 0
+    assert results["motoplus_bridge SIGTERM, restarted"]["session_end"] == "STOP"
