@@ -21,6 +21,7 @@ EXECUTABLES = {
     "profile_pose_experiment": "profile_pose_ros.tools.experiment:main",
     "profile_pose_fuzz": "profile_pose_ros.tools.fuzz:main",
     "profile_pose_faults": "profile_pose_ros.tools.faults:main",
+    "profile_pose_soak": "profile_pose_ros.tools.soak:main",
     "profile_pose_demo": "profile_pose_ros.tools.estimation_demo:main",
     "profile_pose_benchmark": "profile_pose_ros.tools.benchmark:main",
     "profile_pose_node_benchmark": "profile_pose_ros.tools.node_benchmark:main",
