@@ -19,9 +19,19 @@ from ..resources import config_path
 from .graph import Graph, free_port
 from .report import run_dir
 
+DISCOVERY_RANGES = ("LOCALHOST", "SUBNET", "OFF", "SYSTEM_DEFAULT")
 NODES = ("profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge")
 ALIVE_TOPICS = {"profile": "sensor_msgs/msg/PointCloud2", "pose": "geometry_msgs/msg/PoseStamped",
                 "correction": "geometry_msgs/msg/TwistStamped"}  # each must carry messages before "ready"
+
+
+def discovery_range(requested: str | None, environ: dict) -> str:
+    """DDS discovery stays on this machine unless told otherwise (--discovery-range, or
+    ROS_AUTOMATIC_DISCOVERY_RANGE already set): nothing on the cell network sees or feeds the graph."""
+    value = (requested or environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST").upper()
+    if value not in DISCOVERY_RANGES:
+        raise ValueError(f"discovery range must be one of {', '.join(DISCOVERY_RANGES)}, not {value!r}")
+    return value
 
 
 class Bringup:
@@ -95,6 +105,9 @@ def main(argv=None) -> int:
     parser.add_argument("--namespace", default="", help="e.g. cell2: every node and topic under /cell2")
     parser.add_argument("--record", action="store_true", help="also record the cell's topics (bag_recorder)")
     parser.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: the environment's, else 0)")
+    parser.add_argument("--discovery-range", type=str.upper, choices=DISCOVERY_RANGES,
+                        help="ROS_AUTOMATIC_DISCOVERY_RANGE for every node (default: the environment's, else "
+                             "LOCALHOST: the graph is invisible to the cell network)")
     parser.add_argument("--ready-timeout", type=float, default=90.0)
     parser.add_argument("--duration", type=float, help="stop by itself after this long (s) once ready")
     parser.add_argument("--out", default="runs")
@@ -103,6 +116,7 @@ def main(argv=None) -> int:
     params_file = Path(args.params_file) if args.params_file else config_path(
         "hardware.yaml" if args.hardware else "cell.yaml")
     domain_id = args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID", "0"))
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = discovery = discovery_range(args.discovery_range, os.environ)
     out = run_dir(args.out, f"bringup{'-' + args.namespace.strip('/') if args.namespace else ''}")
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -112,7 +126,7 @@ def main(argv=None) -> int:
     try:
         cell.start()
         print(f"starting {'the real cell' if args.hardware else 'the simulated cell'} with {params_file} "
-              f"(domain {domain_id}{', namespace /' + args.namespace.strip('/') if args.namespace else ''}); "
+              f"(domain {domain_id}, discovery {discovery}{', namespace /' + args.namespace.strip('/') if args.namespace else ''}); "
               f"logs in {out}", flush=True)
         ready_s = cell.wait_ready(args.ready_timeout)
         print(f"ready in {ready_s:.1f} s: {cell.status()}; Ctrl-C stops the cell", flush=True)

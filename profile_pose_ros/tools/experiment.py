@@ -75,9 +75,10 @@ def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.nd
 class Experiment:
     def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0,
                  compensator: dict | None = None, refine_model: str = "dense", profile_rate_hz: float | None = None,
-                 bag: Path | None = None) -> None:
+                 bag: Path | None = None, gauge_file: str = "") -> None:
         """rate_hz: the controller's (83.333 or 250), which also triggers the profiler unless
-        profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there."""
+        profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there;
+        gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one)."""
         from geometry_msgs.msg import PoseStamped
 
         self.graph, self.rate_hz = graph, rate_hz
@@ -88,13 +89,14 @@ class Experiment:
         profiler_port, mcu_port, robot_port = free_port(), free_port(), free_port()
         sim = {"profiler_port": profiler_port, "mcu_port": mcu_port, "robot_port": robot_port,
                "control_period": period, "noise_std": noise_std, "seed": seed, "diagnostics_period": 0.5}
+        gauge = {"gauge_file": gauge_file} if gauge_file else {}
         driver = {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}", "diagnostics_period": 0.5}
         if profile_rate_hz:
             sim.update(profiler_trigger="clock", trigger_rate=profile_rate_hz, mcu_baudrate=2_000_000)
             driver.update(baudrate=2_000_000)
-        graph.start("sim_cell", sim)
+        graph.start("sim_cell", {**sim, **gauge})
         graph.start("profiler_driver", driver)
-        graph.start("pose_estimator", {"diagnostics_period": 0.5, "refine_model": refine_model})
+        graph.start("pose_estimator", {"diagnostics_period": 0.5, "refine_model": refine_model, **gauge})
         graph.start("pd_compensator", {"diagnostics_period": 0.5, **(compensator or {})})
         graph.start("motoplus_bridge", {"port": robot_port, "period": period, "diagnostics_period": 0.5})
         node = graph.node
@@ -275,11 +277,11 @@ def _save(fig, path) -> str:
 
 def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise: float, out, seed: int = 0,
         compensator: dict | None = None, modes: tuple[str, ...] = ("open", "closed"),
-        refine_model: str = "dense", bag: Path | None = None) -> dict:
+        refine_model: str = "dense", bag: Path | None = None, gauge_file: str = "") -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_experiment")
     runs: list[dict] = []
     try:
-        exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model, bag=bag)
+        exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model, bag=bag, gauge_file=gauge_file)
         exp.start()
         for mode in modes:
             exp.bridge(arm=(mode == "closed"))
@@ -315,6 +317,8 @@ def main(argv=None) -> int:
     parser.add_argument("--refine-model", default="dense", choices=["corners", "dense"],
                         help="pose_estimator's refinement: dense fits every point (~1.6x less noise along the "
                              "gauge's weak y axis, ~3 ms per profile)")
+    parser.add_argument("--gauge", default="", help="gauge YAML of the cell (default: config/gauge_paper_n5.yaml; "
+                        "config/gauge_designed_n6.yaml is ~4.5x better determined over the same motion)")
     parser.add_argument("--no-bag", action="store_true", help="do not record the run (by default every topic "
                         "goes to <run>/bag, MCAP with zstd chunks)")
     parser.add_argument("--out", default="runs")
@@ -323,11 +327,11 @@ def main(argv=None) -> int:
     bag = None if args.no_bag else out / "bag"
     gains = {k: list(v) for k, v in (("kp", args.kp), ("kd", args.kd), ("acceleration_psd", args.psd)) if v}
     print(f"Table IV protocol at {args.rate:g} Hz: {len(args.axes)} axes x {len(args.sizes)} sizes x "
-          f"{args.repeats} repeats, open and closed loop; gauge config/gauge_paper_n5.yaml, "
+          f"{args.repeats} repeats, open and closed loop; gauge {args.gauge or 'config/gauge_paper_n5.yaml'}, "
           f"{args.refine_model} refinement, {args.noise * 1e6:g} um profile noise; logs in {out / 'logs'}",
           flush=True)
     result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=gains,
-                 modes=tuple(args.modes), refine_model=args.refine_model, bag=bag)
+                 modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge)
     if len(args.modes) < 2:
         return 0
     text, checks = table_iv(result["runs"], args.axes, args.sizes)

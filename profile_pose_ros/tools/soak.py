@@ -15,6 +15,7 @@ import argparse
 import re
 import sys
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -90,7 +91,7 @@ class Soak:
     def _clock(self, running: bool) -> None:
         self.graph.set_parameters("sim_cell", {"trigger_rate": self.rate_hz if running else 0.0})
 
-    def run(self, seconds: float, interval: float, log=print) -> dict:
+    def run(self, seconds: float, interval: float, log: Callable[..., None] = print) -> dict:
         self.exp.start()
         self.exp.bridge(arm=True)
         self._clock(False)
@@ -118,7 +119,8 @@ class Soak:
                    "poses_to_client": len(self.latency["pose"]), "rss_mb": self.memory_mb()}
             intervals.append(row)
             log(f"  {row['t_s']:6.0f} s: {delta['triggered']} triggered, {delta['compensator_poses']} poses used, "
-                f"p99 trigger->pose {row['pose_p99_ms']:.2f} ms, ->increment {row['increment_p99_ms']:.2f} ms")
+                f"p99 trigger->pose {row['pose_p99_ms']:.2f} ms, ->increment {row['increment_p99_ms']:.2f} ms",
+                flush=True)
             for stage in self.latency.values():
                 stage.clear()
             counts_before, before = counts, end
