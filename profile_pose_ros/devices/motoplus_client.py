@@ -49,10 +49,10 @@ class BridgeCounters:
 class MotoPlusClient:
     def __init__(self, host: str, port: int, limits: SessionLimits,
                  increment: Callable[[float], tuple[np.ndarray, float] | None],
-                 on_state: Callable[[mp.State, float], None], max_age_s: Callable[[], float] = lambda: 0.05,
+                 on_state: Callable[[mp.State, float], None], max_age_s: Callable[[], float] = lambda: 0.024,
                  log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0,
                  on_sent: Callable[[tuple[int, ...], float, float], None] | None = None) -> None:
-        """increment(now, wall time): (this period's move in m and rad, the trigger time of the correction it
+        """increment(now, the wall time of this STATE's answer): (this period's move in m and rad, the trigger time of the correction it
         comes from), or None to hold still; max_age_s: the monitor's staleness limit;
         on_sent(units, trigger time, wall time just after the send): each moving CORRECTION as it left."""
         self.host, self.port, self.limits = host, port, limits
@@ -194,6 +194,7 @@ class MotoPlusClient:
             self.on_sent(units, stamp, time.time())
         self.counters.corrections += 1
         if broken:
+            self.monitor.fault()
             self.disarm(f"safety monitor: {self.monitor.last_violation} (sent zero instead)")
 
     def _limit(self, units: tuple[int, ...]) -> tuple[int, ...]:
