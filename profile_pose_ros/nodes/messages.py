@@ -73,6 +73,12 @@ def twist_stamped(values, stamp: Time, frame_id: str) -> TwistStamped:
     return msg
 
 
+def twist_vector(twist) -> np.ndarray:
+    """A Twist as [vx vy vz wx wy wz] (the inverse of twist_stamped)."""
+    return np.array([twist.linear.x, twist.linear.y, twist.linear.z,
+                     twist.angular.x, twist.angular.y, twist.angular.z])
+
+
 def pose_with_covariance(pose: PoseStamped, covariance: np.ndarray) -> PoseWithCovarianceStamped:
     """The same pose (header and Pose shared, not recomputed) with its 6x6 covariance in ROS order."""
     msg = PoseWithCovarianceStamped()

@@ -22,7 +22,7 @@ from ..core import motoplus_protocol as mp
 from ..core.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
-from .messages import fill_pose, twist_stamped
+from .messages import fill_pose, twist_stamped, twist_vector
 from .parameters import Param, declare_all
 from .run import run_node
 
@@ -95,8 +95,7 @@ class MotoPlusBridgeNode(Node):
 
     # ---------------------------------------------------------------- corrections
     def _on_correction(self, msg: TwistStamped) -> None:
-        velocity = np.array([msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z,
-                             msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z])
+        velocity = twist_vector(msg.twist)
         if not np.all(np.isfinite(velocity)):
             self.get_logger().error("correction with NaN or inf ignored", throttle_duration_sec=1.0)
             return

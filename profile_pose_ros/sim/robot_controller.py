@@ -64,7 +64,6 @@ class RobotController:
         self.clamped = 0
         self.states_sent = 0
         self.session_end = ""  # why the last session ended: STOP, a FAULT, the peer leaving, a test's disconnect
-        self._applied: tuple[int, ...] = (0,) * 6
         self._cut = False  # the last applied increment was clamped
         self._seq = 0
         self._lock = threading.RLock()
@@ -125,8 +124,7 @@ class RobotController:
                 self.faults.disconnect_after_periods = 0
                 self._end_session("injected disconnect")
                 return
-            self._apply(session)
-            applied = self._applied
+            applied = self._apply(session)
             state = self._state(session)
         if self.on_applied is not None:
             self.on_applied(time.time(), applied)
@@ -137,13 +135,13 @@ class RobotController:
         else:
             self._send(state)
 
-    def _apply(self, session: Session) -> None:
-        """The newest CORRECTION of the last period, clamped; none for 3 periods: hold still."""
-        self._applied = (0,) * 6
+    def _apply(self, session: Session) -> tuple[int, ...]:
+        """The newest CORRECTION of the last period, clamped; none for 3 periods: hold still. Returns the
+        increment applied (zeros when none was)."""
         if session.pending is None:
             session.periods_without += 1
             self._cut = False
-            return
+            return (0,) * 6
         seq, correction = session.pending
         session.pending = None
         session.periods_without = 0
@@ -152,12 +150,12 @@ class RobotController:
         bound = np.array(session.hello.max_offset)
         if np.any(np.abs(total) > bound):
             self._fault(mp.FAULT_LIMIT, f"total offset {total.tolist()} beyond {bound.tolist()}")
-            return
+            return (0,) * 6
         self.correction = total
-        self._applied = tuple(int(v) for v in step)
         self.clamped += int(cut)
         session.applied_seq = seq
         self._cut = cut
+        return tuple(int(v) for v in step)
 
     def _state(self, session: Session) -> mp.Frame:
         status = mp.ARMED | (mp.HOLDING if session.periods_without >= HOLD_AFTER_PERIODS else 0)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..nodes.messages import pose_stamped, rotation_translation
+from ..nodes.messages import pose_stamped, rotation_translation, stamp_ns
 from ..bags import bag_info
 from .graph import Graph, free_port
 from .report import run_dir, table, write_json
@@ -116,7 +116,7 @@ class Experiment:
     @staticmethod
     def _sample(msg) -> tuple[float, np.ndarray]:
         p = msg.pose.position
-        return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, np.array([p.x, p.y, p.z])
+        return stamp_ns(msg.header.stamp) * 1e-9, np.array([p.x, p.y, p.z])
 
     @property
     def diagnostics(self) -> dict:
@@ -136,6 +136,12 @@ class Experiment:
         recent = [p for _, p in self.poses[-int(0.5 / self.period):]]
         self.home = (rotation_translation(self.last_pose)[0], np.mean(recent, axis=0))
         self.reference(np.zeros(3))
+
+    def close_loop(self, settle_s: float = 1.0) -> None:
+        """start(), arm the bridge, and let the loop settle on the home reference."""
+        self.start()
+        self.bridge(arm=True)
+        self.wait(settle_s)
 
     def reference(self, offset: np.ndarray) -> None:
         rotation, position = self.home

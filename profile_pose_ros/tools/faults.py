@@ -25,6 +25,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..nodes.messages import stamp_ns, twist_vector
 from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
 from .experiment import Experiment
 from .graph import Graph
@@ -95,17 +96,13 @@ class FaultRun:
         self._sign = 1.0
 
     def _on_applied(self, msg) -> None:
-        t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-        v = msg.twist
-        self.applied.append((t, np.array([v.linear.x, v.linear.y, v.linear.z, v.angular.x, v.angular.y,
-                                          v.angular.z])))
+        self.applied.append((stamp_ns(msg.header.stamp) * 1e-9, twist_vector(msg.twist)))
 
     def _on_correction(self, msg) -> None:
         """A non-zero correction is stamped with the trigger time of the pose it was computed from (the
         compensator's zeros for a stale pose are stamped with their own time and move nothing)."""
-        v = msg.twist
-        if any((v.linear.x, v.linear.y, v.linear.z, v.angular.x, v.angular.y, v.angular.z)):
-            self.moving_corrections.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+        if np.any(twist_vector(msg.twist) != 0.0):
+            self.moving_corrections.append(stamp_ns(msg.header.stamp) * 1e-9)
 
     def load(self, processes: int) -> None:
         for hog in self._hogs:
@@ -128,9 +125,7 @@ class FaultRun:
         return requested
 
     def start(self) -> None:
-        self.exp.start()
-        self.exp.bridge(arm=True)
-        self.exp.wait(1.0)
+        self.exp.close_loop()
 
     def episode(self, fault: Fault) -> dict:
         self._sign = -self._sign
@@ -138,6 +133,7 @@ class FaultRun:
         self.exp.wait(MID_MOTION_S)
         monitor_before = self._monitor_violations()
         end_before = self.graph.diagnostic("sim_cell", "robot_session_end", "none")
+        fault_before = self.graph.diagnostic("sim_cell", "robot_last_fault", "none")
         fault.inject(self)
         t_inject = time.time()  # in effect: sim_cell has applied the parameter, or the killed process has exited
         self.exp.wait(HOLD_S)
@@ -149,7 +145,8 @@ class FaultRun:
         recovered = self.graph.spin_until(lambda: self._first_motion(resume) is not None, 60.0)
         self.exp.wait(SETTLE_S)
         t_end = time.time()
-        result = self._evaluate(fault, t_inject, t_clear, t_rearm, t_end, recovered, monitor_before)
+        result = self._evaluate(fault, t_inject, t_clear, t_rearm, resume, t_end, recovered, monitor_before,
+                                fault_before)
         result["session_end"] = session_end if session_end != end_before else "-"
         if fault.session_end and session_end != fault.session_end:
             result["ok"] = False
@@ -177,8 +174,8 @@ class FaultRun:
                     errors.append(float(np.linalg.norm(p - truth[match])))
         return errors
 
-    def _evaluate(self, fault: Fault, t_inject: float, t_clear: float, t_rearm: float | None, t_end: float,
-                  recovered: bool, monitor_before: int) -> dict:
+    def _evaluate(self, fault: Fault, t_inject: float, t_clear: float, t_rearm: float | None, resume: float,
+                  t_end: float, recovered: bool, monitor_before: int, fault_before: str) -> dict:
         window = [(t, s) for t, s in self.applied if t_inject - 0.2 <= t <= t_end]
         clamp = sum(bool(np.any(np.abs(s) > self.max_step + 1.5e-6)) for _, s in window)
         fresh = np.array(sorted(self.moving_corrections))  # trigger times of the poses behind moving corrections
@@ -193,11 +190,11 @@ class FaultRun:
             session_before_rearm = sum(1 for t, _ in window if t_inject + 2 * self.period < t < t_rearm)
         errors = self._pose_errors(t_inject, t_end)
         bad_poses = sum(e > BAD_POSE_M for e in errors)
-        last_fault = self.graph.diagnostic("sim_cell", "robot_last_fault", "none")
-        offset_faults = int("total offset" in last_fault)
+        last_fault = self.graph.diagnostic("sim_cell", "robot_last_fault", "none")  # latched: new in this episode?
+        offset_faults = int(last_fault != fault_before and "total offset" in last_fault)
         moving = self._moving(t_inject, t_clear)
         stop_s = max(moving) - t_inject if moving else 0.0
-        first = self._first_motion(t_rearm or t_clear)
+        first = self._first_motion(resume)
         during = [t for t, _ in self.exp.poses if t_inject <= t <= t_clear]
         result = {
             "fault": fault.name, "must_stop": fault.must_stop,

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -26,11 +27,18 @@ STAGES = (("profile", "profile", "sensor_msgs/msg/PointCloud2"),
           ("increment sent", "/motoplus_bridge/increment", "geometry_msgs/msg/TwistStamped"))
 
 
-def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float, skip: tuple[str, ...] = ()) -> dict:
-    from rclpy.qos import qos_profile_sensor_data
-
+def subscribe_latency(node, topic: str, msgtype: str, qos, sink: Callable[[float], None]):
+    """A raw subscription handing sink() each message's publish time - its stamp (the trigger time), in ms."""
     from ..nodes.bag_common import message_class
     from ..nodes.messages import cdr_stamp_ns
+
+    return node.create_subscription(
+        message_class(msgtype), topic,
+        lambda data, info: sink((info["source_timestamp"] - cdr_stamp_ns(data)) * 1e-6), qos, raw=True)
+
+
+def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float, skip: tuple[str, ...] = ()) -> dict:
+    from rclpy.qos import qos_profile_sensor_data
 
     control_hz = 83.333 if rate_hz < 200 else 250.0
     graph = Graph(out / f"logs_{rate_hz:g}hz", client_name="profile_pose_latency")
@@ -43,14 +51,12 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
             if name in skip:
                 continue
 
-            def on_message(data, info, name=name) -> None:
+            def on_latency(ms: float, name=name) -> None:
                 if recording[0]:
-                    latencies[name].append((info["source_timestamp"] - cdr_stamp_ns(data)) * 1e-6)
+                    latencies[name].append(ms)
             qos = qos_profile_sensor_data if name == "profile" else 1000
-            graph.node.create_subscription(message_class(msgtype), topic, on_message, qos, raw=True)
-        exp.start()
-        exp.bridge(arm=True)
-        exp.wait(1.0)
+            subscribe_latency(graph.node, topic, msgtype, qos, on_latency)
+        exp.close_loop()
         cpu_before = {name: cpu_seconds(p.pid) for name, p in graph.processes.items()}
         cpu_before["(this client)"] = time.process_time()
         recording[0] = True

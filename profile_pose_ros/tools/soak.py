@@ -21,6 +21,7 @@ import numpy as np
 
 from .experiment import Experiment
 from .graph import Graph
+from .latency import subscribe_latency
 from .processes import memory_kib
 from .report import run_dir, table, write_json
 
@@ -35,9 +36,6 @@ class Soak:
     def __init__(self, graph: Graph, profile_rate_hz: float, refine_model: str) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
 
-        from ..nodes.bag_common import message_class
-        from ..nodes.messages import cdr_stamp_ns
-
         control_hz = 83.333 if profile_rate_hz < 200 else 250.0
         self.graph = graph
         self.rate_hz = profile_rate_hz
@@ -46,14 +44,10 @@ class Soak:
         self.latency: dict[str, list[float]] = {"pose": [], "increment": []}
         self.not_ok: dict[tuple[str, str, str], list] = {}  # (status, level, kind) -> [count, first, last, example]
         self._started = time.time()
-
-        def on_message(data, info, stage: str) -> None:
-            self.latency[stage].append((info["source_timestamp"] - cdr_stamp_ns(data)) * 1e-6)
         node = graph.node
-        node.create_subscription(message_class("geometry_msgs/msg/PoseStamped"), "pose",
-                                 lambda d, i: on_message(d, i, "pose"), 1000, raw=True)
-        node.create_subscription(message_class("geometry_msgs/msg/TwistStamped"), "/motoplus_bridge/increment",
-                                 lambda d, i: on_message(d, i, "increment"), 1000, raw=True)
+        subscribe_latency(node, "pose", "geometry_msgs/msg/PoseStamped", 1000, self.latency["pose"].append)
+        subscribe_latency(node, "/motoplus_bridge/increment", "geometry_msgs/msg/TwistStamped", 1000,
+                          self.latency["increment"].append)
         node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
 
     def _on_diagnostics(self, msg) -> None:
@@ -92,8 +86,7 @@ class Soak:
         self.graph.set_parameters("sim_cell", {"trigger_rate": self.rate_hz if running else 0.0})
 
     def run(self, seconds: float, interval: float, log: Callable[..., None] = print) -> dict:
-        self.exp.start()
-        self.exp.bridge(arm=True)
+        self.exp.close_loop(settle_s=0.0)
         self._clock(False)
         first = self._settled_counters()
         self._clock(True)
