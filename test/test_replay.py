@@ -33,8 +33,10 @@ def test_recorded_profiles_replay_to_the_recorded_poses_bit_for_bit(tmp_path) ->
     graph = Graph(tmp_path / "live", client_name="replay_test")
     try:
         profiler, mcu = free_port(), free_port()
-        graph.start("sim_cell", {"profiler_port": profiler, "mcu_port": mcu, "robot_port": 0, "noise_std": 5e-6,
-                                 "trigger_rate": 0.0})
+        # no robot controller: it would trigger the profiler every period from the start, before the recorder
+        # has subscribed; the clock triggers only once trigger_rate is set below
+        graph.start("sim_cell", {"profiler_port": profiler, "mcu_port": mcu, "robot_enabled": False,
+                                 "noise_std": 5e-6, "trigger_rate": 0.0})
         graph.start("bag_recorder", {"output": str(recorded), "topics": ["profile", "pose", "pose_with_covariance",
                                                                          "/sim/ground_truth"]})
         graph.start("profiler_driver", {"port": profiler, "serial_url": f"socket://127.0.0.1:{mcu}"})
