@@ -9,10 +9,12 @@ from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamp
 from rclpy.parameter import Parameter
 from rclpy.time import Time
 
-from profile_pose_ros.core.compensator import AxisKalman, Gains, Mounting, covariance_in_base, pd_velocity
+from profile_pose_ros.core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base,
+                                               pd_velocity, zvd_impulses)
 from profile_pose_ros.core.poses import LOOKING_DOWN
 from profile_pose_ros.nodes.messages import pose_stamped, pose_with_covariance
 from profile_pose_ros.nodes.pd_compensator import PdCompensatorNode
+from profile_pose_ros.sim.arm import Arm
 
 from conftest import paced
 
@@ -51,6 +53,36 @@ def test_covariance_is_rotated_into_the_base_frame() -> None:
     covariance = np.diag([1.0, 4.0, 9.0, 1.0, 1.0, 1.0])
     quarter_turn = Mounting((0.0, 0.0, 0.0, 0.0, 0.0, np.pi / 2))
     np.testing.assert_allclose(covariance_in_base(covariance, quarter_turn)[:3], [4.0, 1.0, 9.0], atol=1e-12)
+
+
+def ringing_after_a_move(shaper: InputShaper | None) -> tuple[float, float]:
+    """The simulated arm's y after a 1 mm correction sent as velocity, 12 ms per period as the bridge does:
+    (std of the ringing after the move, where it ended)."""
+    arm, command, ys = Arm(), np.zeros(6), []
+    for k in range(150):
+        velocity = np.array([0.0, 0.025 if k < 4 else 0.0, 0.0, 0.0, 0.0, 0.0])  # ~1.2 mm in 48 ms
+        if shaper is not None:
+            velocity = shaper(k * 0.012, velocity)
+        command = command + velocity * 0.012
+        arm.command = command
+        arm.advance(0.012)
+        ys.append(arm.position[1])
+    settled = np.array(ys[40:])
+    return float(np.std(settled)), float(settled[-1])
+
+
+def test_the_input_shaper_keeps_the_arms_resonance_out_of_the_corrections() -> None:
+    raw_ringing, _ = ringing_after_a_move(None)
+    shaped_ringing, shaped_end = ringing_after_a_move(InputShaper(zvd_impulses(10.0, 0.05)))
+    assert raw_ringing > 50e-6
+    assert shaped_ringing < 0.05 * raw_ringing
+    assert shaped_end == pytest.approx(1.2e-3, abs=5e-6)  # the whole move, just without the ringing
+    for off_tune in (9.0, 11.0):  # the model's frequency 10 % off
+        assert ringing_after_a_move(InputShaper(zvd_impulses(off_tune, 0.05)))[0] < 0.1 * raw_ringing
+    assert sum(gain for _, gain in zvd_impulses(10.0, 0.05)) == pytest.approx(1.0)
+    for bad in ((0.0, 0.05), (10.0, 1.0), (float("nan"), 0.1)):
+        with pytest.raises(ValueError):
+            zvd_impulses(*bad)
 
 
 def compensator(ros, **params) -> PdCompensatorNode:

@@ -29,6 +29,12 @@ def test_peak_frequency_magnitude_sees_the_ringing_not_the_step() -> None:
     assert ringing > 20 * smooth
 
 
+def test_a_response_that_never_rises_has_metrics_not_an_error() -> None:
+    t = np.arange(0, 1.5, 0.012)
+    m = step_metrics(t, 0.5e-3 * (1 - np.exp(-t)), 1e-3)  # reaches 39 % of the step in the record
+    assert m["Mp"] == 0.0 and np.isnan(m["rise_time_s"])
+
+
 def test_no_overshoot_is_critically_damped_or_more() -> None:
     assert damping_from_overshoot(0.0) == 1.0
     assert damping_from_overshoot(65.88) == pytest.approx(0.132, abs=0.002)  # Table IV's y, open loop

@@ -1,5 +1,6 @@
 """pd_compensator: `pose_with_covariance` and `reference_pose` (F in G) -> `correction` (TwistStamped, robot
-base frame): a PD law on the Kalman-filtered pose error (core/compensator.py).
+base frame): a PD law on the Kalman-filtered pose error, through an input shaper that keeps the arm's 10 Hz
+resonance out of the commands (core/compensator.py).
 
 A stale pose (older than max_pose_age by its stamp), a missing one (the estimator rejected the profile)
 or no reference gives a zero correction and a diagnostic. Gains change at run time, validated.
@@ -16,7 +17,8 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.time import Time
 
-from ..core.compensator import AxisKalman, Gains, Mounting, covariance_in_base, pd_velocity, pose_vector_in_base
+from ..core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base, pd_velocity,
+                                pose_vector_in_base, zvd_impulses)
 from .diagnostics import OK, WARN, diagnostic_array
 from .messages import rotation_translation, twist_stamped
 from .parameters import Param, declare_all, updated
@@ -27,7 +29,7 @@ NODE_NAME = "pd_compensator"
 PARAMETERS = [
     Param("kp", [4.0, 4.0, 4.0, 5.0, 5.0, 5.0], "Proportional gain per axis x y z rx ry rz (1/s): velocity "
           "commanded per unit of pose error."),
-    Param("kd", [-0.2, -0.3, -0.2, 0.0, 0.0, 0.0], "Derivative gain per axis (dimensionless): velocity commanded "
+    Param("kd", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], "Derivative gain per axis (dimensionless): velocity commanded "
           "per unit of the arm's filtered velocity, subtracted."),
     Param("max_speed", [0.05, 0.05, 0.05, 0.2, 0.2, 0.2], "Correction speed limit per axis (m/s, rad/s)."),
     Param("gauge_in_base", [0.0] * 6, "Pose of the gauge frame G in the robot base frame: x y z (m), rotation "
@@ -35,6 +37,11 @@ PARAMETERS = [
           "frame.", read_only=True),
     Param("acceleration_psd", [20.0, 0.5, 20.0, 2.0, 2.0, 2.0], "Kalman filter process noise per axis "
           "((m/s^2)^2/Hz): larger follows faster motion, smaller averages more noise.", read_only=True),
+    Param("shaper_frequency", 10.0, "The arm's resonance (Hz, natural frequency) that a ZVD input shaper keeps "
+          "out of the corrections; 0 turns the shaper off. Read it off an open-loop step (profile_pose_experiment "
+          "--modes open prints the ringing).", 0.0, 100.0, read_only=True),
+    Param("shaper_damping", 0.05, "Damping ratio of that resonance, for the shaper (the ZVD shaper tolerates "
+          "+-20 % error on the frequency).", 0.0, 0.9, read_only=True),
     Param("use_covariance", True, "Weight each pose by its published covariance (else by measurement_std)."),
     Param("measurement_std", 5e-5, "Pose noise assumed when use_covariance is false (m; rad the same number).",
           1e-7, 1e-2),
@@ -63,6 +70,8 @@ class PdCompensatorNode(Node):
             raise ValueError("gauge_in_base and acceleration_psd need six values")
         self.mounting = Mounting(tuple(v["gauge_in_base"]))
         self.filter = AxisKalman(np.array(v["acceleration_psd"]))
+        self.shaper = (InputShaper(zvd_impulses(v["shaper_frequency"], v["shaper_damping"]))
+                       if v["shaper_frequency"] > 0 else None)
         self.anchor: np.ndarray | None = None  # base-frame rotation all rotation vectors are taken from
         self.reference: np.ndarray | None = None  # 6-vector in base coordinates
         self.last_pose_stamp = 0.0
@@ -112,7 +121,10 @@ class PdCompensatorNode(Node):
         if self.reference is None:
             return  # no target yet: the watchdog keeps the output at zero
         self.last_error = self.reference - self.filter.position
-        self._publish(pd_velocity(self.last_error, self.filter.velocity, self.gains), msg.header.stamp)
+        velocity = pd_velocity(self.last_error, self.filter.velocity, self.gains)
+        if self.shaper is not None:
+            velocity = self.shaper(stamp, velocity)  # a mix of limited velocities: still within max_speed
+        self._publish(velocity, msg.header.stamp)
         self.corrections += 1
 
     def _publish(self, velocity: np.ndarray, stamp) -> None:
@@ -121,6 +133,8 @@ class PdCompensatorNode(Node):
     def _watchdog(self) -> None:
         if self.reference is None or time.time() - self.last_pose_stamp > self.values["max_pose_age"]:
             self.filter.reset()  # the next fresh pose starts the filter again, not from old motion
+            if self.shaper is not None:
+                self.shaper.reset()  # nor does old shaped motion come back after a stale spell
             self._publish(np.zeros(6), self.get_clock().now().to_msg())
             self.stale_zeros += 1
 

@@ -49,7 +49,11 @@ def step_metrics(t: np.ndarray, y: np.ndarray, size: float) -> dict:
     """
     import control
 
-    info = control.step_info(y, T=t, yfinal=size)
+    try:
+        info = control.step_info(y, T=t, yfinal=size)
+    except IndexError:  # python-control finds no rise: the response never reached 90 % of the step
+        info = {"Overshoot": 100.0 * (float(np.max(y)) - size) / size, "RiseTime": float("nan"),
+                "SettlingTime": float("nan")}
     mp = max(0.0, float(info["Overshoot"]))
     freqs, amplitude = post_rise_spectrum(t, y, size)
     band = (freqs >= 5.0) & (freqs <= 20.0)
@@ -184,8 +188,16 @@ class Experiment:
             p = np.array([q for _, q in series])
             before = (t > start - BEFORE_S) & (t < start)
             during = (t >= start) & (t < start + RECORD_S)
-            y = (p[during] - p[before].mean(axis=0)) @ unit
-            out[name] = {"t": (t[during] - start).tolist(), "y": y.tolist(), **step_metrics(t[during] - start, y, size)}
+            expected = RECORD_S / self.period
+            if during.sum() < 0.5 * expected or not before.any():
+                y = np.zeros(0)
+                metrics = dict.fromkeys(("Mp", "zeta", "Mf_um", "rise_time_s", "settling_time_s"), float("nan"))
+                print(f"  warning: {name} has {during.sum()} of ~{expected:.0f} samples in this step (poses lost: "
+                      f"see the estimator's diagnostics); its metrics are left out", flush=True)
+            else:
+                y = (p[during] - p[before].mean(axis=0)) @ unit
+                metrics = step_metrics(t[during] - start, y, size)
+            out[name] = {"t": (t[during] - start)[:len(y)].tolist(), "y": y.tolist(), **metrics}
         return out
 
 
@@ -206,7 +218,7 @@ def summarise(runs: list[dict], source: str = "estimate") -> dict:
     for r in runs:
         key = (r["axis"], r["size_mm"], r["mode"])
         table_.setdefault(key, []).append(r[source])
-    return {key: {m: (float(np.mean([x[m] for x in v])), float(np.std([x[m] for x in v])))
+    return {key: {m: (float(np.nanmean([x[m] for x in v])), float(np.nanstd([x[m] for x in v])))
                   for m in ("Mp", "zeta", "Mf_um")} for key, v in table_.items()}
 
 
@@ -257,6 +269,7 @@ def plot(runs: list[dict], out, axes: list[str]) -> list[str]:
     paths.append(_save(fig, out / "fig6_open_vs_closed.png"))
 
     open_runs = [r for r in runs if r["mode"] == "open" and r["size_mm"] == 1.0]
+    open_runs = [r for r in open_runs if r["estimate"]["y"] and r["truth"]["y"]]  # steps with their samples
     r = next((r for r in open_runs if r["axis"] == "y"), open_runs[0] if open_runs else None)  # y rings most
     if r:
         fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.2))
@@ -338,7 +351,9 @@ def main(argv=None) -> int:
           flush=True)
     result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=gains,
                  modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge)
-    if len(args.modes) < 2:
+    if len(args.modes) < 2:  # nothing to compare: the runs only
+        write_json(out / "experiment.json", result)
+        print(f"results: {out / 'experiment.json'}")
         return 0
     text, checks = table_iv(result["runs"], args.axes, args.sizes)
     print(text)
