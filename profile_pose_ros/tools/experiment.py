@@ -228,8 +228,9 @@ def improvement(open_value: float, closed_value: float, higher_is_better: bool) 
     return 100.0 * (open_value - closed_value) / open_value if open_value else 0.0
 
 
-def table_iv(runs: list[dict], axes: list[str], sizes: list[float]) -> tuple[str, list[dict]]:
-    s = summarise(runs)
+def table_iv(runs: list[dict], axes: list[str], sizes: list[float], source: str = "estimate") -> tuple[str, list[dict]]:
+    """The table from the estimated poses (as the paper measured) or from the arm's true motion."""
+    s = summarise(runs, source)
     rows, checks = [], []
     for axis in axes:
         for size in sizes:
@@ -246,7 +247,8 @@ def table_iv(runs: list[dict], axes: list[str], sizes: list[float]) -> tuple[str
                 checks.append({"axis": axis, "size_mm": size, "ours": gains, "paper": list(paper),
                                "at_least_paper": all(g >= p for g, p in zip(gains, paper))})
     text = table(["step", "", "Mp (%)", "zeta", "Mf (um)"], rows,
-                 "Table IV on the simulated cell (from the estimated poses; mean ± std over repeats)")
+                 f"Table IV on the simulated cell (from the {'estimated poses' if source == 'estimate' else 'true arm motion'}"
+                 "; mean ± std over repeats)")
     return text, checks
 
 
@@ -356,15 +358,19 @@ def main(argv=None) -> int:
         print(f"results: {out / 'experiment.json'}")
         return 0
     text, checks = table_iv(result["runs"], args.axes, args.sizes)
+    _, truth_checks = table_iv(result["runs"], args.axes, args.sizes, source="truth")
     print(text)
     floor = result["noise_floor_um"]
     print("loop noise floor, closed loop holding still (std, um, x y z): estimate "
           + " ".join(f"{v:.1f}" for v in floor["estimate"]) + "; arm (truth) "
           + " ".join(f"{v:.1f}" for v in floor["truth"]))
-    for c in checks:
-        print(f"  {c['axis']} {c['size_mm']:g} mm: improvement >= the paper's on Mp, zeta, Mf: "
-              f"{'yes' if c['at_least_paper'] else 'NO'}")
+    print("improvement >= the paper's on Mp, zeta and Mf, measured by the estimate (the paper's way) and by the "
+          "arm's true motion (the simulator's truth, which a real cell does not have):")
+    for c, t in zip(checks, truth_checks):
+        print(f"  {c['axis']} {c['size_mm']:g} mm: estimate {'yes' if c['at_least_paper'] else 'NO'}; truth "
+              f"{'yes' if t['at_least_paper'] else 'NO'} ({' / '.join(f'{g:.1f}' for g in t['ours'])} %)")
     result["table_iv_checks"] = checks
+    result["table_iv_checks_truth"] = truth_checks
     result["plots"] = plot(result["runs"], out, [a for a in args.axes if a != "xyz"])
     write_json(out / "experiment.json", result)
     print(f"results: {out / 'experiment.json'}; plots: {', '.join(result['plots'])}")
