@@ -138,7 +138,12 @@ def verdict(result: dict) -> dict:
     growth = {name: rows[-1]["rss_mb"][name] - rows[0]["rss_mb"][name] for name in rows[-1]["rss_mb"]
               if name in rows[0]["rss_mb"]}
     delivered = used / triggered if triggered else 0.0
+    totals = result["totals"]
+    lost = {"driver (triggered, no profile)": totals["triggered"] - totals["profiles"],
+            "estimator (profile, no pose)": totals["profiles"] - totals["poses"],
+            "compensator (pose stale on arrival or dropped)": totals["poses"] - totals["compensator_poses"]}
     return {"crashes": result["crashes"], "triggered": triggered, "poses_used": used, "delivered": delivered,
+            "achieved_rate_hz": triggered / (result["minutes"] * 60.0), "lost": lost,
             "rss_growth_mb": growth, "ok": (not result["crashes"] and delivered >= DELIVERED_MIN
                                             and all(g <= RSS_GROWTH_MAX_MB for g in growth.values()))}
 
@@ -181,6 +186,9 @@ def print_report(result: dict) -> None:
               f"triggered ({100 * v['delivered']:.3f} %, need >= {100 * DELIVERED_MIN:g} %); resident memory growth "
               f"after the first interval (MB): " + ", ".join(f"{k} {g:+.1f}" for k, g in v["rss_growth_mb"].items())
               + f" (need <= {RSS_GROWTH_MAX_MB:g}); {'PASS' if v['ok'] else 'FAIL'}")
+    if "lost" in v:
+        print(f"trigger rate achieved: {v['achieved_rate_hz']:.0f} Hz of {result['rate_hz']:g} asked (the simulator "
+              f"shares the machine); poses lost by stage: " + ", ".join(f"{k} {n}" for k, n in v["lost"].items()))
     for crash in v["crashes"]:
         print(f"crash: {crash}")
 
