@@ -44,7 +44,10 @@ def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
     """All six processes: the open loop rings like the paper's arm; the closed loop overshoots less."""
     from profile_pose_ros.tools.experiment import run
 
-    result = run(83.333, repeats=1, sizes=[1.0], axes=["z"], noise=5e-6, out=tmp_path)
+    from profile_pose_ros.resources import config_path
+
+    result = run(83.333, repeats=1, sizes=[1.0], axes=["z"], noise=5e-6, out=tmp_path, refine_model="corners",
+                 gauge_file=str(config_path("gauge_designed_n6.yaml")))  # the main job's cell
     by_mode = {r["mode"]: r for r in result["runs"]}
     open_loop, closed_loop = by_mode["open"]["estimate"], by_mode["closed"]["estimate"]
     assert open_loop["Mp"] == pytest.approx(13.98, rel=0.2)  # Table IV, z 1 mm, open loop
