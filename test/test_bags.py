@@ -6,6 +6,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 from profile_pose_ros.bags import BagError, BagWriter, bag_info, read_messages, recover
@@ -214,7 +215,7 @@ def test_player_keeps_timing_rate_offset_filter_and_loops(ros, tmp_path) -> None
 
     got, times = play(rate=2.0, topics=["/a"])
     assert got == [f"a{i}" for i in range(20)]
-    assert times[-1] - times[0] >= 0.9 * 1.9 / 2.0  # never faster than asked
+    assert np.median(np.diff(times)) >= 0.9 * 0.1 / 2.0  # never faster than asked (the first may come late)
     got, _ = play(rate=10.0, start_offset=1.05)
     assert got == [f"a{i}" for i in range(11, 20)]
     got, _ = play(lambda: len(received) >= 3, rate=20.0, loop=True, exclude_topics=["/a"])

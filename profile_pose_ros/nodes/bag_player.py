@@ -35,6 +35,10 @@ PARAMETERS = [
     Param("wait_for_subscribers", False, "Start only once every played topic has a subscriber (or after "
           "wait_timeout).", read_only=True),
     Param("wait_timeout", 10.0, "Longest wait for subscribers (s).", 0.0, 3600.0, read_only=True),
+    Param("discovery_grace", 0.5, "After the subscribers appear, wait this long before the first message when a "
+          "topic is best-effort (s): such a writer sees its reader before the reader has matched it back, and "
+          "the first messages would be lost (sensor topics such as profile are best-effort).", 0.0, 60.0,
+          read_only=True),
     Param("exit_when_done", True, "Shut down after the last message (unless looping).", read_only=True),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
 ]
@@ -72,6 +76,9 @@ class BagPlayerNode(Node):
         deadline = time.monotonic() + self.values["wait_timeout"]
         while time.monotonic() < deadline and not self._stop.is_set():
             if all(p.get_subscription_count() for p in self.publishers_by_topic.values()):
+                if any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                       for p in self.publishers_by_topic.values()):
+                    self._stop.wait(self.values["discovery_grace"])
                 return
             self._stop.wait(0.02)
         self.get_logger().warn("not every topic has a subscriber; playing anyway")
