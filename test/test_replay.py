@@ -73,7 +73,8 @@ def test_recorded_profiles_replay_to_the_recorded_poses_bit_for_bit(tmp_path) ->
         poses = count_poses(graph)
         assert graph.spin_until(lambda: graph.node.count_subscribers("pose") >= 2, 60.0)  # the recorder's too
         graph.start("bag_player", {"bag": str(recorded), "topics": ["/profile"], "wait_for_subscribers": True,
-                                       "wait_timeout": 60.0})  # a loaded machine can take > 10 s to match them
+                                       "wait_timeout": 60.0,  # a loaded machine can take > 10 s to match them
+                                       "rate": 0.25})  # profile is best-effort: a busy estimator must not drop any
         player = graph.processes.pop("bag_player")  # it exits by itself at the end of the bag
         assert graph.spin_until(lambda: len(poses) >= report["replayed_poses"] and player.poll() is not None,
                                 120.0)

@@ -41,6 +41,11 @@ TRUTH_MATCH_NS = 1_500_000  # under half the shortest trigger period (4 ms)
 _DEFAULTS = {p.name: p.default for p in BRIDGE_PARAMETERS}
 
 
+# The controller's apply time and the poses' stamps are read in different processes: on a saturated 2-core
+# machine those readings lag the events by a few ms (a 2 ms allowance gave false stale-motion counts).
+SCHEDULING_SLACK_S = 0.005
+
+
 @dataclass(frozen=True)
 class Fault:
     name: str
@@ -184,7 +189,7 @@ class FaultRun:
             if np.any(s != 0.0):
                 k = np.searchsorted(fresh, t, side="right")
                 newest = fresh[k - 1] if k else -np.inf
-                stale += int(t - newest > self.max_age + self.period + 2e-3)
+                stale += int(t - newest > self.max_age + self.period + SCHEDULING_SLACK_S)
         session_before_rearm = 0
         if fault.rearm and t_rearm is not None:
             session_before_rearm = sum(1 for t, _ in window if t_inject + 2 * self.period < t < t_rearm)
