@@ -1,8 +1,6 @@
 """Shared fixtures: the shipped gauge, seeded RNGs, and a fresh rclpy Context per test."""
 from __future__ import annotations
 
-import itertools
-import os
 import time
 from pathlib import Path
 
@@ -10,10 +8,10 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import Gauge
+from profile_pose_ros.tools.processes import fresh_domain_id
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER_GAUGE = ROOT / "config" / "gauge_paper_n5.yaml"
-_domains = itertools.count()
 
 
 @pytest.fixture(scope="session")
@@ -26,9 +24,7 @@ def rng() -> np.random.Generator:
     return np.random.default_rng(20260122)
 
 
-def unique_domain_id() -> int:
-    """Distinct per test and per concurrently running pytest process (valid Fast DDS ids: 0-232)."""
-    return 1 + (os.getpid() * 13 + next(_domains)) % 200
+unique_domain_id = fresh_domain_id  # distinct per test, and from every Graph of this pytest process
 
 
 def paced(action, period: float = 0.005):

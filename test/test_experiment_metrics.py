@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from profile_pose_ros.tools.experiment import damping_from_overshoot, step_metrics
+from profile_pose_ros.tools.experiment import METRICS, damping_from_overshoot, step_metrics
 
 
 def second_order_step(zeta: float, size: float = 1e-3, rate: float = 83.333) -> tuple[np.ndarray, np.ndarray]:
@@ -33,6 +33,7 @@ def test_a_response_that_never_rises_has_metrics_not_an_error() -> None:
     t = np.arange(0, 1.5, 0.012)
     m = step_metrics(t, 0.5e-3 * (1 - np.exp(-t)), 1e-3)  # reaches 39 % of the step in the record
     assert m["Mp"] == 0.0 and np.isnan(m["rise_time_s"])
+    assert tuple(m) == METRICS  # a step left out for lost poses reports the same keys
 
 
 def test_no_overshoot_is_critically_damped_or_more() -> None:

@@ -71,13 +71,16 @@ def test_recorded_profiles_replay_to_the_recorded_poses_bit_for_bit(tmp_path) ->
         graph.start("bag_recorder", {"output": str(rerun), "topics": ["pose"]})
         graph.start("pose_estimator", {"refine_model": "dense", "queue_depth": 1000})
         poses = count_poses(graph)
-        assert graph.spin_until(lambda: graph.node.count_subscribers("pose") >= 2, 60.0)  # the recorder's too
+        # the estimator's publisher matched to the recorder and to this client (seeing them is not enough: a pose
+        # published before its publisher has matched them is lost to them)
+        assert graph.spin_until(lambda: int(graph.diagnostic("pose_estimator", "pose_subscribers", "0")) >= 2, 60.0)
         graph.start("bag_player", {"bag": str(recorded), "topics": ["/profile"], "wait_for_subscribers": True,
                                        "wait_timeout": 60.0,  # a loaded machine can take > 10 s to match them
                                        "rate": 0.25})  # profile is best-effort: a busy estimator must not drop any
         player = graph.processes.pop("bag_player")  # it exits by itself at the end of the bag
         assert graph.spin_until(lambda: len(poses) >= report["replayed_poses"] and player.poll() is not None,
-                                120.0)
+                                120.0), (f"{len(poses)} poses of {report['replayed_poses']}; player exit code "
+                                         f"{player.poll()}; {[v for k, v in graph.diagnostics.items() if 'pose_estimator' in k]}")
         assert processes.stop(player) == 0
         graph.stop("pose_estimator")
         graph.stop("bag_recorder")

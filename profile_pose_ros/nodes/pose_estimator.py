@@ -233,6 +233,7 @@ class PoseEstimatorNode(Node):
             "last_reprojection_error_um": self.last_reprojection_error * 1e6,
             "mean_processing_ms": 1e3 * w["busy"] / received if received else 0.0,
             "gauge": self.gauge.name, "gauge_file": self.gauge_file,
+            "pose_subscribers": self.pose_pub.get_subscription_count(),  # matched: who gets the poses now
         }
         self.diagnostics_pub.publish(diagnostic_array(self, "pose estimation", self.gauge.name,
                                                       level, message, values))

@@ -29,6 +29,7 @@ PAPER_IMPROVEMENT = {  # Table IV: (Mp, zeta, Mf) improvement in % at 1 mm and 2
     "z": {1: (78.83, 29.33, 93.64), 2: (86.72, 23.17, 96.36)},
 }
 RECORD_S, SETTLE_S, BEFORE_S = 1.5, 1.5, 0.2
+METRICS = ("Mp", "zeta", "Mf_um", "rise_time_s", "settling_time_s")  # what step_metrics returns
 
 
 def damping_from_overshoot(mp_percent: float) -> float:
@@ -190,14 +191,12 @@ class Experiment:
             during = (t >= start) & (t < start + RECORD_S)
             expected = RECORD_S / self.period
             if during.sum() < 0.5 * expected or not before.any():
-                y = np.zeros(0)
-                metrics = dict.fromkeys(("Mp", "zeta", "Mf_um", "rise_time_s", "settling_time_s"), float("nan"))
                 print(f"  warning: {name} has {during.sum()} of ~{expected:.0f} samples in this step (poses lost: "
                       f"see the estimator's diagnostics); its metrics are left out", flush=True)
-            else:
-                y = (p[during] - p[before].mean(axis=0)) @ unit
-                metrics = step_metrics(t[during] - start, y, size)
-            out[name] = {"t": (t[during] - start)[:len(y)].tolist(), "y": y.tolist(), **metrics}
+                out[name] = {"t": [], "y": [], **dict.fromkeys(METRICS, float("nan"))}
+                continue
+            y = (p[during] - p[before].mean(axis=0)) @ unit
+            out[name] = {"t": (t[during] - start).tolist(), "y": y.tolist(), **step_metrics(t[during] - start, y, size)}
         return out
 
 

@@ -2,8 +2,6 @@
 to watch them: what the checks, the experiment and the soak run against."""
 from __future__ import annotations
 
-import itertools
-import os
 import shutil
 import signal
 import socket
@@ -56,9 +54,6 @@ def launcher(executable: str) -> list[str]:
     return processes.executable(executable, MODULES[executable])
 
 
-_GRAPHS = itertools.count()
-
-
 class Graph:
     """Processes are closed in the reverse of their start order: start the cell first and the bridge
     last, so that the bridge stops (and sends STOP) first."""
@@ -74,9 +69,7 @@ class Graph:
         self._launcher: dict[str, list[str]] = {}
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        if domain_id is None:  # a fresh domain per graph: nothing of an earlier graph of this process can answer
-            domain_id = 1 + (os.getpid() * 7 + next(_GRAPHS) * 11) % 200
-        self.domain_id = domain_id
+        self.domain_id = domain_id if domain_id is not None else processes.fresh_domain_id()
         self.processes: dict[str, subprocess.Popen] = {}
         self.commands: dict[str, list[str]] = {}  # name -> how it was started, for restart()
         self.restarts: dict[str, int] = {}

@@ -1,6 +1,7 @@
 """Running package executables as their own processes, and measuring them through /proc."""
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -8,6 +9,14 @@ import sys
 from pathlib import Path
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+_DOMAINS = itertools.count()
+
+
+def fresh_domain_id() -> int:
+    """A DDS domain no earlier call of this process handed out (within 200), and likely none of another
+    process running beside it (valid Fast DDS ids: 0-232): each graph or test context gets its own, so
+    nothing left of an earlier one can answer."""
+    return 1 + (os.getpid() * 13 + next(_DOMAINS)) % 200
 
 
 def executable(name: str, module: str) -> list[str]:
