@@ -35,7 +35,7 @@ def test_dense_beats_corners_and_approaches_its_bound(gauge, spikes):
     rms_corner, rms_dense = (np.sqrt(np.mean(np.square(e))) for e in (corner_err, dense_err))
     bound, _ = position_rotation_rms(dense_crlb(gauge, rotation, t, 5e-6))
     assert rms_dense < rms_corner / 1.2
-    assert rms_dense < 1.3 * bound
+    assert rms_dense < 1.15 * bound  # 1.1-1.2x with a 0.5 mm ridge margin; ~1.0x with 0.05 mm
     assert 4.0 < np.mean(nees) < 9.0
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped, TwistStamped
 from rclpy.parameter import Parameter
@@ -74,3 +75,45 @@ def test_arms_on_request_moves_on_fresh_corrections_only_and_rearms_after_a_faul
     assert not bridge.client.armed and len(states) == before  # no session: no STATE, no motion
     future = start.call_async(Trigger.Request())
     assert ros.spin_until(lambda: future.done() and bridge.client.armed, 10.0)
+
+
+def test_each_state_is_answered_with_the_correction_made_after_it(ros, tmp_path) -> None:
+    """The bridge holds a STATE's answer for the correction computed from that period's measurement, so it
+    moves the robot one period after the trigger; answering at once would send the previous period's."""
+    period = 0.04  # long enough for this test's chain to answer within it on a loaded machine
+    port = free_port()
+    command = processes.executable("sim_cell", MODULES["sim_cell"]) + ["--ros-args", *ros_params(
+        {"robot_port": port, "profiler_port": 0, "mcu_port": 0, "control_period": period})]
+    sim = processes.start(command, ros.domain_id, tmp_path / "sim_cell.log")
+    try:
+        bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
+            Parameter("port", value=port), Parameter("period", value=period), Parameter("max_age", value=0.2),
+            Parameter("watchdog", value=2.0), Parameter("arm_on_start", value=True),
+            Parameter("diagnostics_period", value=60.0)]))
+        chain = ros.node("chain")  # stands in for profiler -> estimator -> compensator, triggered by each STATE
+        corrections = chain.create_publisher(TwistStamped, "correction", 10)
+
+        def on_state(_msg: PoseStamped) -> None:
+            msg = TwistStamped()
+            msg.header.stamp = Time(nanoseconds=time.time_ns()).to_msg()
+            msg.twist.linear.x = 1e-4
+            corrections.publish(msg)
+
+        chain.create_subscription(PoseStamped, "robot_state", on_state, 10)
+        assert ros.spin_until(lambda: bridge.client.armed, 30.0), bridge.client.last_error
+
+        def ages(count: int) -> np.ndarray:
+            """Correction age when its increment left (s), over the next `count` answers."""
+            with bridge._lock:
+                bridge._ages.clear()
+            assert ros.spin_until(lambda: len(bridge._ages) >= count, 30.0), vars(bridge.client.counters)
+            with bridge._lock:
+                return np.array(bridge._ages)
+
+        held = ages(20)
+        assert np.median(held) < 0.5 * period, held
+        assert bridge.set_parameters([Parameter("answer_wait", value=0.0)])[0].successful  # at once
+        at_once = ages(20)
+        assert np.median(at_once) > 0.9 * period, at_once
+    finally:
+        processes.stop(sim)

@@ -23,7 +23,11 @@ E3 = np.array([0.0, 0.0, 1.0])
 
 @dataclass(frozen=True)
 class DenseOptions:
-    ridge_margin: float = 5e-4  # m; points this close to a ridge or an edge (in x of G) are not used
+    # m; points this close to a ridge or an edge (in x of G) are not used. A point put on the wrong side of a
+    # ridge misses its face by its distance from the ridge times the change of slope, so the robust cut drops
+    # it beyond a few tens of um anyway. On the shipped gauge 0.5 mm left the estimate 1.1x above its
+    # Cramer-Rao bound; 0.05 mm reaches it.
+    ridge_margin: float = 5e-5
     outlier_threshold: float = 4.0  # robust standard deviations
     min_outlier_floor: float = 2e-6  # m
     iterations: int = 8

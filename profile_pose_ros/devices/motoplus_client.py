@@ -2,7 +2,10 @@
 
 Disarmed until arm() is called; then HELLO, and for every STATE exactly one CORRECTION with the
 increment `increment(now)` returns (clamped per cycle and to what is left of the total offset bound, here as
-well as on the controller), checked last by core.safety.SafetyMonitor. Any fault, protocol error or
+well as on the controller), checked last by core.safety.SafetyMonitor. The answer goes out as soon as
+`await_correction(state_time)` returns: the bridge holds it until the correction from this period's
+measurement arrives (or a deadline before the next period), so a pose triggered at one STATE moves the robot at the
+next period instead of waiting for the next STATE and a period more. Any fault, protocol error or
 disconnect disarms it, and only another arm() re-arms: it never moves the robot on its own after a fault.
 It reconnects with back-off; stop() sends STOP.
 """
@@ -51,14 +54,17 @@ class MotoPlusClient:
                  increment: Callable[[float], tuple[np.ndarray, float] | None],
                  on_state: Callable[[mp.State, float], None], max_age_s: Callable[[], float] = lambda: 0.024,
                  log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0,
-                 on_sent: Callable[[tuple[int, ...], float, float], None] | None = None) -> None:
+                 on_sent: Callable[[tuple[int, ...], float, float], None] | None = None,
+                 await_correction: Callable[[float], None] | None = None) -> None:
         """increment(now, the wall time of this STATE's answer): (this period's move in m and rad, the trigger time of the correction it
         comes from), or None to hold still; max_age_s: the monitor's staleness limit;
-        on_sent(units, trigger time, wall time just after the send): each moving CORRECTION as it left."""
+        on_sent(units, trigger time, wall time just after the send): each moving CORRECTION as it left;
+        await_correction(wall time the STATE arrived): returns when the answer should go out."""
         self.host, self.port, self.limits = host, port, limits
         self.monitor = SafetyMonitor(mp.metres_to_units(limits.max_step), mp.metres_to_units(limits.max_offset),
                                      max_age_s)
         self.on_sent = on_sent
+        self.await_correction = await_correction
         self.increment, self.on_state, self.log = increment, on_state, log
         self.backoff_min, self.backoff_max = backoff_min, backoff_max
         self.state = DISCONNECTED
@@ -149,22 +155,28 @@ class MotoPlusClient:
                 continue
             if not data:
                 raise ConnectionError("the controller closed the connection")
-            for frame in reader.feed(data):
+            frames = reader.feed(data)
+            for k, frame in enumerate(frames):
                 self._peer_seq = frame.seq
-                self._handle(frame)
+                self._handle(frame, behind=any(isinstance(f.body, mp.State) for f in frames[k + 1:]))
 
-    def _handle(self, frame: mp.Frame) -> None:
+    def _handle(self, frame: mp.Frame, behind: bool = False) -> None:
+        """behind: a newer STATE is already here, so this one is answered at once (this thread was late)."""
         body = frame.body
         now = time.monotonic()
         if isinstance(body, mp.State):
             self.counters.states += 1
             self.last_state, self.last_state_time = body, now
-            self.on_state(body, time.time())
+            arrived = time.time()
+            self.on_state(body, arrived)
             if self.state == ARMING and body.status & mp.ARMED:
                 self.state = ARMED
                 return  # the arming STATE: the first CORRECTION answers the next one
             if self.state == ARMED:
-                self._correct()
+                if self.await_correction is not None and not behind:
+                    self.await_correction(arrived)
+                if self.state == ARMED:  # not stopped (~/stop) while it waited
+                    self._correct()
         elif isinstance(body, mp.Fault):
             self.last_fault = (body.code, body.text)
             self.last_error = f"controller FAULT {body.code}: {body.text}"

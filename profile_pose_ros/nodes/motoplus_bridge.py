@@ -3,17 +3,21 @@ controller period over the MotoPlus protocol (docs/motoplus_protocol.md); `robot
 out; services ~/start (arm) and ~/stop (STOP, disarm).
 
 Thin glue around devices.motoplus_client.MotoPlusClient (its own socket thread, paced by the
-controller's STATE). A correction older than `max_age` (by its stamp: the profile's trigger time) moves
-nothing; a fault or a lost session disarms until ~/start; STOP goes out on every shutdown path.
+controller's STATE). Each STATE's answer waits up to `answer_wait` periods for the correction computed from
+that period's measurement, so a pose can reach the robot one period after its trigger (answering at once
+sends the previous period's correction). A correction older than `max_age` (by its stamp: the profile's
+trigger time) moves nothing; a fault or a lost session disarms until ~/start; STOP goes out on every shutdown path.
 """
 from __future__ import annotations
 
 import sys
 import threading
+import time
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TwistStamped
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.time import Time
 from std_srvs.srv import Trigger
@@ -44,6 +48,10 @@ PARAMETERS = [
     Param("max_age", 0.024, "A correction older than this (by its stamp: the trigger time) moves nothing (s). "
           "The robot stops within max_age + one period of losing its data: 2 periods keeps that within 3.",
           0.001, 1.0),
+    Param("answer_wait", 0.5, "How long (in periods) a STATE's answer may wait for the correction measured at "
+          "that STATE's trigger: it leaves as soon as that arrives, else with the newest one at this deadline. "
+          "0 answers at once (the previous period's correction: a period more of loop delay). Past ~0.5 a late "
+          "thread may miss the controller's next period.", 0.0, 0.9),
     Param("frame", "base", "Cartesian frame of the increments: base, robot, tool or user.", read_only=True),
     Param("base_frame", "base", "frame_id of robot_state."),
     Param("arm_on_start", False, "Arm (send HELLO) as soon as connected, without ~/start."),
@@ -71,6 +79,7 @@ class MotoPlusBridgeNode(Node):
         self._lock = threading.Lock()
         self._velocities: list[np.ndarray] = []  # corrections received since the last increment
         self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity)
+        self._fresh = threading.Condition(self._lock)  # a correction arrived
         self._ages: list[float] = []  # trigger-to-send times (s) since the last diagnostics
         self._sent: list[tuple[int, tuple[int, ...]]] = []  # increments sent, not yet published
         self.stale_periods = 0
@@ -85,10 +94,11 @@ class MotoPlusBridgeNode(Node):
         self.client = MotoPlusClient(v["host"], v["port"], self.limits, self._increment, self._on_state,
                                      max_age_s=lambda: self.values["max_age"],
                                      log=lambda text: logger.warn(text, throttle_duration_sec=1.0),
-                                     on_sent=self._on_sent)
+                                     on_sent=self._on_sent, await_correction=self._await_correction)
         if v["arm_on_start"]:
             self.client.arm()
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         self.client.start()
         logger.info(f"robot controller tcp://{v['host']}:{v['port']}, period {v['period'] * 1e3:.1f} ms; "
                     f"{'arming' if v['arm_on_start'] else 'disarmed until ~/start'}")
@@ -103,6 +113,21 @@ class MotoPlusBridgeNode(Node):
         with self._lock:
             self._velocities.append(velocity)
             self._latest = (stamp, velocity)
+            self._fresh.notify()
+
+    def _await_correction(self, state_wall_time: float) -> None:
+        """Socket thread: hold this STATE's answer until a correction from this period's measurement is here
+        (triggered less than half a period before the STATE arrived), for at most answer_wait periods.
+        Newer than the last answer is not enough: a chain that ran one period late would stay one period late."""
+        period = self.limits.period_s
+        deadline = state_wall_time + self.values["answer_wait"] * period
+        since_ns = (state_wall_time - 0.5 * period) * 1e9
+        with self._fresh:
+            while self._latest is None or self._latest[0] < since_ns:
+                remaining = deadline - time.time()
+                if remaining <= 0.0:
+                    return
+                self._fresh.wait(remaining)
 
     def _increment(self, now: float) -> tuple[np.ndarray, float] | None:
         """This period's move (socket thread): the mean velocity commanded during the period times the
@@ -141,6 +166,12 @@ class MotoPlusBridgeNode(Node):
         msg.header.frame_id = self.values["base_frame"]
         fill_pose(msg.pose, so3_exp(pose[3:]), pose[:3])
         self.state_pub.publish(msg)
+
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        """max_age, answer_wait, base_frame at run time (ranges checked by their descriptors; the rest is
+        read-only). The socket thread reads self.values afresh each period: one dict swap, never half of one."""
+        self.values = dict(self.values, **{p.name: p.value for p in parameters})
+        return SetParametersResult(successful=True)
 
     # ---------------------------------------------------------------- services
     def _on_start(self, _request, response):

@@ -147,7 +147,7 @@ class PdCompensatorNode(Node):
         else:
             level, message = OK, "correcting"
         values = {"poses": self.poses, "corrections": self.corrections, "zero_corrections": self.stale_zeros,
-                  "pose_age_ms": age * 1e3, "error_um": [round(e * 1e6, 1) for e in self.last_error[:3]],
+                  "pose_age_ms": age * 1e3, "error_um": [round(float(e) * 1e6, 1) for e in self.last_error[:3]],
                   "kp": list(self.gains.kp), "kd": list(self.gains.kd)}
         self.diagnostics_pub.publish(diagnostic_array(self, "compensator", "pd_compensator",
                                                       level, message, values))

@@ -1,9 +1,9 @@
 """The simulated robot controller: the MotoPlus side of docs/motoplus_protocol.md, over the arm model.
 
 A thread runs the 4 ms interpolation clock. Each tick the arm advances; each control period (3 ticks =
-12 ms by default) the controller raises its per-cycle output (the cell triggers the profiler at the
-arm's pose of that instant), applies the newest CORRECTION it received (clamped per cycle, the total
-offset bounded), and sends STATE, which paces the bridge. It enforces every rule of the protocol and
+12 ms by default) the controller applies the newest CORRECTION it received (clamped per cycle, the total
+offset bounded), sends STATE, which paces the bridge, and raises its per-cycle output (the cell triggers
+the profiler at the arm's pose of that instant). It enforces every rule of the protocol and
 can be told to misbehave (delayed or dropped STATE, a disconnect).
 """
 from __future__ import annotations
@@ -81,6 +81,7 @@ class RobotController:
         return self.period_ticks * TICK_S
 
     def start(self) -> "RobotController":
+        self.arm.advance(0.0)  # loads the compiled dynamics (~0.5 s in a fresh process) before the clock runs
         self.server.start()
         self._clock.start()
         return self
@@ -108,8 +109,13 @@ class RobotController:
                 self._period()
 
     def _period(self) -> None:
+        self._serve_period()
         if self.on_period is not None:
-            self.on_period()  # the per-cycle output: the profiler sees the arm as it is now
+            # The per-cycle output, right after the STATE, as the real controller's task does both at once
+            # (rendering the profile first delayed the STATE by milliseconds). The arm has not moved since.
+            self.on_period()
+
+    def _serve_period(self) -> None:
         with self._lock:
             session = self.session
             if session is None:
@@ -126,14 +132,15 @@ class RobotController:
                 return
             applied = self._apply(session)
             state = self._state(session)
-        if self.on_applied is not None:
-            self.on_applied(time.time(), applied)
+        applied_at = time.time()
         if self.faults.state_drop_fraction and self.rng.random() < self.faults.state_drop_fraction:
-            return
-        if self.faults.state_delay_s > 0:
+            pass
+        elif self.faults.state_delay_s > 0:
             threading.Timer(self.faults.state_delay_s, self._send, args=(state,)).start()
         else:
             self._send(state)
+        if self.on_applied is not None:  # after the STATE: publishing it is slow, and the bridge is waiting
+            self.on_applied(applied_at, applied)
 
     def _apply(self, session: Session) -> tuple[int, ...]:
         """The newest CORRECTION of the last period, clamped; none for 3 periods: hold still. Returns the
