@@ -33,10 +33,13 @@ class ServedDirectly(CallbackGroup):
 
 
 class FastInput:
-    def __init__(self, subscription: Subscription, context, callback: Callable) -> None:
+    def __init__(self, subscription: Subscription, context, callback: Callable, guard=None) -> None:
+        """guard: an optional GuardCondition (in a ServedDirectly group) whose callback runs here when
+        another thread triggers it, as promptly as a message."""
         self.subscription = subscription
         self.callback = callback
-        self.wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, context.handle)
+        self.guard = guard
+        self.wait_set = _rclpy.WaitSet(1, 0 if guard is None else 1, 0, 0, 0, 0, context.handle)
 
     def pump(self, timeout_sec: float) -> int:
         """Wait up to timeout_sec for messages, then handle every one queued; returns how many."""
@@ -44,9 +47,16 @@ class FastInput:
         with handle:
             self.wait_set.clear_entities()
             self.wait_set.add_subscription(handle)
+            if self.guard is not None:
+                with self.guard.handle:
+                    self.wait_set.add_guard_condition(self.guard.handle)
             self.wait_set.wait(int(max(timeout_sec, 0.0) * 1e9))
-            if not self.wait_set.is_ready("subscription", 0):
-                return 0
+            message_ready = self.wait_set.is_ready("subscription", 0)
+            guard_ready = self.guard is not None and self.wait_set.is_ready("guard_condition", 0)
+        if guard_ready:
+            self.guard.callback()
+        if not message_ready:
+            return 0
         handled = 0
         while True:
             with handle:

@@ -26,6 +26,7 @@ from ..core import motoplus_protocol as mp
 from ..core.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
+from .fast_input import FastInput, ServedDirectly, spin
 from .messages import fill_pose, twist_stamped, twist_vector
 from .parameters import Param, declare_all
 from .run import run_node
@@ -85,9 +86,15 @@ class MotoPlusBridgeNode(Node):
         self.stale_periods = 0
         self.state_pub = self.create_publisher(PoseStamped, "robot_state", 10)
         self.increment_pub = self.create_publisher(TwistStamped, "~/increment", 100)
-        self._sent_guard = self.create_guard_condition(self._publish_increments)
+        # Corrections and the sent-increment note are served straight from their wait set (fast_input.py):
+        # the socket thread is waiting for each correction, and through the executor each waited behind its
+        # per-wake-up bookkeeping, about a millisecond here.
+        direct = ServedDirectly()
+        self._sent_guard = self.create_guard_condition(self._publish_increments, callback_group=direct)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(TwistStamped, "correction", self._on_correction, 10)
+        corrections = self.create_subscription(TwistStamped, "correction", self._on_correction, 10,
+                                               callback_group=direct)
+        self.fast_input = FastInput(corrections, self.context, self._on_correction, guard=self._sent_guard)
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/stop", self._on_stop)
         logger = self.get_logger()
@@ -167,6 +174,10 @@ class MotoPlusBridgeNode(Node):
         fill_pose(msg.pose, so3_exp(pose[3:]), pose[:3])
         self.state_pub.publish(msg)
 
+    def pump(self, timeout_sec: float = 0.0) -> int:
+        """Handle queued corrections and sent increments (see fast_input.py); spin() or a test harness calls this."""
+        return self.fast_input.pump(timeout_sec)
+
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         """max_age, answer_wait, base_frame at run time (ranges checked by their descriptors; the rest is
         read-only). The socket thread reads self.values afresh each period: one dict swap, never half of one."""
@@ -227,7 +238,8 @@ class MotoPlusBridgeNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,))
+    return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,),
+                    spin=lambda executor, node, stop: spin(executor, node.fast_input, stop))
 
 
 if __name__ == "__main__":
