@@ -2,10 +2,10 @@
 
 Disarmed until arm() is called; then HELLO, and for every STATE exactly one CORRECTION with the
 increment `increment(now)` returns (clamped per cycle and to what is left of the total offset bound, here as
-well as on the controller), checked last by core.safety.SafetyMonitor. The answer goes out as soon as
-`await_correction(state_time)` returns: the bridge holds it until the correction from this period's
-measurement arrives (or a deadline before the next period), so a pose triggered at one STATE moves the robot at the
-next period instead of waiting for the next STATE and a period more. Any fault, protocol error or
+well as on the controller), checked last by core.safety.SafetyMonitor. The answer goes out when
+`await_correction(arrival time)` returns: the bridge holds it until the correction measured at this
+STATE's trigger arrives (or a deadline within the period), so that correction moves the robot at the next
+period instead of waiting for the next STATE and a period more. Any fault, protocol error or
 disconnect disarms it, and only another arm() re-arms: it never moves the robot on its own after a fault.
 It reconnects with back-off; stop() sends STOP.
 """
@@ -56,8 +56,8 @@ class MotoPlusClient:
                  log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0,
                  on_sent: Callable[[tuple[int, ...], float, float], None] | None = None,
                  await_correction: Callable[[float], None] | None = None) -> None:
-        """increment(now, the wall time of this STATE's answer): (this period's move in m and rad, the trigger time of the correction it
-        comes from), or None to hold still; max_age_s: the monitor's staleness limit;
+        """increment(now, the wall time of this STATE's answer): (this period's move in m and rad, the
+        trigger time of the correction it comes from), or None to hold still; max_age_s: the monitor's staleness limit;
         on_sent(units, trigger time, wall time just after the send): each moving CORRECTION as it left;
         await_correction(wall time the STATE arrived): returns when the answer should go out."""
         self.host, self.port, self.limits = host, port, limits

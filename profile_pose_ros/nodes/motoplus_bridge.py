@@ -6,7 +6,8 @@ Thin glue around devices.motoplus_client.MotoPlusClient (its own socket thread, 
 controller's STATE). Each STATE's answer waits up to `answer_wait` periods for the correction computed from
 that period's measurement, so a pose can reach the robot one period after its trigger (answering at once
 sends the previous period's correction). A correction older than `max_age` (by its stamp: the profile's
-trigger time) moves nothing; a fault or a lost session disarms until ~/start; STOP goes out on every shutdown path.
+trigger time) moves nothing; a fault or a lost session disarms until ~/start; STOP goes out on every
+shutdown path.
 """
 from __future__ import annotations
 

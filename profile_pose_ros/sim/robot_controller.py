@@ -133,14 +133,18 @@ class RobotController:
             applied = self._apply(session)
             state = self._state(session)
         applied_at = time.time()
+        self._deliver(state)
+        if self.on_applied is not None:  # after the STATE: publishing it is slow, and the bridge is waiting
+            self.on_applied(applied_at, applied)
+
+    def _deliver(self, state: mp.Frame) -> None:
+        """Send this period's STATE, unless a fault drops or delays it."""
         if self.faults.state_drop_fraction and self.rng.random() < self.faults.state_drop_fraction:
-            pass
-        elif self.faults.state_delay_s > 0:
+            return
+        if self.faults.state_delay_s > 0:
             threading.Timer(self.faults.state_delay_s, self._send, args=(state,)).start()
         else:
             self._send(state)
-        if self.on_applied is not None:  # after the STATE: publishing it is slow, and the bridge is waiting
-            self.on_applied(applied_at, applied)
 
     def _apply(self, session: Session) -> tuple[int, ...]:
         """The newest CORRECTION of the last period, clamped; none for 3 periods: hold still. Returns the
