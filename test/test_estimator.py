@@ -101,7 +101,8 @@ def _wrong_minima(n: int, gauges: int, poses: int, **options) -> tuple[int, int]
         for _ in range(poses):
             rotation, t = sample_pose(gauge, rng)
             points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
-            estimate = estimate_pose(points, gauge, max_reprojection_error=1.0, **options)
+            estimate = estimate_pose(points, gauge, max_reprojection_error=1.0,
+                                     **{"max_position_sigma": np.inf, **options})  # every minimum, however poor
             assert estimate.ok, estimate.reason
             searched += estimate.search_starts > 0
             wrong += is_wrong_minimum(points, gauge, estimate, rotation, t)
@@ -113,3 +114,24 @@ def test_basin_search_leaves_no_wrong_minimum_on_random_gauges(n):
     wrong, searched = _wrong_minima(n, gauges=15, poses=10)
     assert searched > 0  # these gauges have poorly determined poses: the search ran
     assert wrong == 0
+
+
+def test_poorly_determined_poses_are_rejected_and_the_rest_have_an_honest_covariance():
+    """Random n = 5 gauges include near-degenerate views; there the linearised covariance understates the
+    error, so such poses are rejected (with the reason), and the NEES of the others averages ~6."""
+    from profile_pose_ros.tools.study import pose_nees
+
+    rng = np.random.default_rng(7)
+    kept, dropped = [], []  # NEES of each pose estimated without the gate, by what the gate decided
+    for _ in range(20):
+        gauge = random_gauge(5, rng)
+        for _ in range(10):
+            rotation, t = sample_pose(gauge, rng)
+            points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+            gated = estimate_pose(points, gauge, max_reprojection_error=1.0)
+            ungated = estimate_pose(points, gauge, max_reprojection_error=1.0, max_position_sigma=np.inf)
+            assert ungated.ok and (gated.ok or "poorly determined" in gated.reason), gated.reason
+            (kept if gated.ok else dropped).append(pose_nees(ungated, rotation, t))
+    assert 0 < len(dropped) < 0.2 * 200
+    assert 3.0 < np.mean(kept) < 12.0  # measured 6.6
+    assert np.mean(dropped) > 2 * np.mean(kept)  # measured 24: their covariance was not honest

@@ -34,6 +34,10 @@ class EstimatorOptions:
     max_iterations: int = 30
     search: bool = True  # look for a lower minimum around a poorly determined pose (solver.search_minima)
     search_min_sigma: float = 2.5e-4  # m; search when the refined position's largest std exceeds this
+    # m; reject a pose whose position's largest std exceeds this: the profile determines it so poorly that its
+    # linearised covariance understates the error (docs/estimator.md, "Covariance"), so nothing downstream
+    # could weight it right. The shipped gauges are near 0.02-0.2 mm at 5 um noise.
+    max_position_sigma: float = 5e-4
 
     def __post_init__(self) -> None:
         if self.weighting not in WEIGHTINGS:
@@ -81,6 +85,11 @@ def reason_reprojection(error: float, gauge: Gauge, options: EstimatorOptions) -
             f"(profile does not match gauge '{gauge.name}')")
 
 
+def reason_poorly_determined(sigma: float, options: EstimatorOptions) -> str:
+    return (f"pose poorly determined: position std up to {sigma * 1e3:.2f} mm exceeds "
+            f"{options.max_position_sigma * 1e3:.2f} mm (a near-degenerate view of the gauge)")
+
+
 def reason_outside(i: int, x: float, y: float, gauge: Gauge) -> str:
     return (f"corner {i} maps to ({x * 1e3:.1f}, {y * 1e3:.1f}) mm, outside gauge "
             f"'{gauge.name}' ({gauge.width * 1e3:.0f} x {gauge.length * 1e3:.0f} mm)")
@@ -121,7 +130,17 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
     else:
         raise ValueError(f"backend must be 'fast' or 'numpy', got {backend!r}")
     if estimate.ok and options.refine and options.refine_model == "dense":
-        return _refine_dense(points, gauge, options, estimate)
+        estimate = _refine_dense(points, gauge, options, estimate)
+    return _checked_precision(estimate, options)
+
+
+def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> PoseEstimate:
+    """The estimate, or a rejection when its position is too poorly determined to trust its covariance."""
+    if not estimate.ok or not np.all(np.isfinite(estimate.covariance[:3, :3])):
+        return estimate
+    sigma = position_sigma(estimate.covariance[:3, :3])
+    if sigma > options.max_position_sigma:
+        return _rejected(estimate, reason_poorly_determined(sigma, options))
     return estimate
 
 
