@@ -135,3 +135,17 @@ def test_poorly_determined_poses_are_rejected_and_the_rest_have_an_honest_covari
     assert 0 < len(dropped) < 0.2 * 200
     assert 3.0 < np.mean(kept) < 12.0  # measured 6.6
     assert np.mean(dropped) > 2 * np.mean(kept)  # measured 24: their covariance was not honest
+
+
+def test_two_equally_good_poses_centimetres_apart_are_rejected_as_ambiguous():
+    """Four ridges give two redundant equations: in the study one pose's corners fit a pose 54 mm away better
+    (cost 1.6) than the true one (4.4). Publishing either would be a coin toss."""
+    rng = np.random.default_rng(2026 * 1000 + 17 * 4 + 37)  # the study's 38th n = 4 gauge, its 64th pose
+    gauge = random_gauge(4, rng)
+    for _ in range(64):
+        rotation, t = sample_pose(gauge, rng)
+        points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+    estimate = estimate_pose(points, gauge, max_reprojection_error=1.0)
+    assert not estimate.ok and "ambiguous" in estimate.reason and "mm apart" in estimate.reason
+    both = estimate_pose(points, gauge, max_reprojection_error=1.0, weighting="uniform")  # rule needs chi-square
+    assert both.ok and np.linalg.norm(both.t - t) > 0.01  # the rule is what stood between it and a 5 cm error
