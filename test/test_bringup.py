@@ -105,4 +105,6 @@ def test_a_killed_bringup_leaves_no_node_behind(ros, tmp_path) -> None:
     assert len(node_processes(f"__ns:=/{ns}")) == 5
     process.kill()
     process.wait()
-    assert ros.spin_until(lambda: not node_processes(f"__ns:=/{ns}"), 30.0)
+    assert ros.spin_until(lambda: not node_processes(f"__ns:=/{ns}"), 30.0), [
+        (Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2], Path(f"/proc/{pid}/status").read_text()[:200])
+        for pid in node_processes(f"__ns:=/{ns}")]

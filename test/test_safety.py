@@ -142,17 +142,21 @@ def test_the_monitor_refuses_a_stale_correction_the_client_passed_on(cell) -> No
         client.stop()
 
 
-@pytest.mark.parametrize("signum,end", [(signal.SIGTERM, "STOP"), (signal.SIGINT, "STOP"),
-                                        (signal.SIGKILL, "the bridge disconnected")])
-def test_the_bridge_process_sends_stop_on_every_shutdown_path(cell, tmp_path, signum, end) -> None:
+@pytest.mark.parametrize("signum,end,burst", [(signal.SIGTERM, "STOP", 1), (signal.SIGINT, "STOP", 1),
+                                              (signal.SIGTERM, "STOP", 200),
+                                              (signal.SIGKILL, "the bridge disconnected", 1)])
+def test_the_bridge_process_sends_stop_on_every_shutdown_path(cell, tmp_path, signum, end, burst) -> None:
     """SIGTERM (a process manager) and SIGINT (Ctrl-C) take the node's clean path, which sends STOP;
-    SIGKILL cannot, and the controller, having lost its peer, holds still."""
+    SIGKILL cannot, and the controller, having lost its peer, holds still. A burst of signals (a parent's
+    death signal on top of a process manager's) is one clean stop. (A node once deadlocked in its signal
+    handler that way; this burst does not reproduce that race, nodes/run.py's StopRequest removes it.)"""
     command = processes.executable("motoplus_bridge", MODULES["motoplus_bridge"]) + ["--ros-args", *ros_params(
         {"port": cell.controller.port, "arm_on_start": True, "watchdog": 2.0})]
     process = processes.start(command, unique_domain_id(), tmp_path / "bridge.log")
     try:
         assert wait_for(lambda: len(cell.applied) > 10, 30.0), (tmp_path / "bridge.log").read_text()
-        process.send_signal(signum)
+        for _ in range(burst):
+            process.send_signal(signum)
         process.wait(10.0)
         assert wait_for(lambda: cell.controller.session is None)
         assert cell.controller.session_end == end, (tmp_path / "bridge.log").read_text()

@@ -9,7 +9,6 @@ two threads waiting in rcl at once would contend for the GIL.
 """
 from __future__ import annotations
 
-import threading
 import time
 from typing import Callable
 
@@ -67,7 +66,7 @@ class FastInput:
             handled += 1
 
 
-def spin(executor, fast_input: FastInput, stop: threading.Event, housekeeping_period: float = 0.01) -> None:
+def spin(executor, fast_input: FastInput, stop, housekeeping_period: float = 0.01) -> None:
     """Serve fast_input continuously and the executor's other work every housekeeping_period, until
     `stop` (Ctrl-C) or shutdown."""
     context = executor.context

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import signal
 import sys
-import threading
 from typing import Callable
 
 import rclpy
@@ -13,15 +12,33 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 
+class StopRequest:
+    """Ctrl-C / SIGTERM, as a plain flag the spin loops poll. threading.Event.set() takes a lock: a second
+    signal arriving while the handler of the first was inside set() deadlocked the process (seen: a
+    sim_cell left running for ever after its bringup was killed, three handlers deep)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def set(self, *_signal_args) -> None:
+        self.requested = True
+
+    def is_set(self) -> bool:
+        return self.requested
+
+    def install(self) -> "StopRequest":
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, self.set)
+        return self
+
+
 def run_node(factory: Callable[[], Node], name: str, args=None,
              startup_errors: tuple[type[BaseException], ...] = (ValueError,),
-             spin: Callable[[SingleThreadedExecutor, Node, threading.Event], None] | None = None) -> int:
+             spin: Callable[[SingleThreadedExecutor, Node, StopRequest], None] | None = None) -> int:
     """Ctrl-C and SIGTERM (a process manager's stop) only ask the spin loop to end (`spin` gets that
     event too), so no callback is cut short and destroy_node() runs whole with a live context: the
     bridge's STOP, the recorder draining its queues and closing its bag."""
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = StopRequest().install()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     try:
         node = factory()

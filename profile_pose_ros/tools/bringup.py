@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 
+from ..nodes.run import StopRequest
 from ..resources import config_path
 from .graph import Graph, free_port
 from .report import run_dir
@@ -118,9 +117,7 @@ def main(argv=None) -> int:
     domain_id = args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID", "0"))
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = discovery = discovery_range(args.discovery_range, os.environ)
     out = run_dir(args.out, f"bringup{'-' + args.namespace.strip('/') if args.namespace else ''}")
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = StopRequest().install()
     cell = Bringup(out, params_file, args.namespace, args.hardware, args.record, domain_id)
     code = 0
     try:
