@@ -23,6 +23,10 @@ from ..core import motoplus_protocol as mp
 from ..core.safety import SafetyMonitor
 
 DISCONNECTED, CONNECTED, ARMING, ARMED = "disconnected", "connected", "arming", "armed"
+# An answer leaving later than this share of the period after its STATE carries no motion: it could reach
+# the controller after its next period, be applied a period later, and so move on a correction older than
+# max_age + one period (the stop bound). The bridge's hold (answer_wait <= 0.7) leaves before it.
+LATE_ANSWER = 0.75
 
 
 @dataclass(frozen=True)
@@ -42,7 +46,8 @@ class SessionLimits:
 class BridgeCounters:
     states: int = 0
     corrections: int = 0
-    zero_corrections: int = 0  # sent because the correction was stale or missing
+    zero_corrections: int = 0  # sent because the correction was stale or missing, or the answer late
+    late_answers: int = 0  # answers that left too late in the period to move the robot
     clamped: int = 0
     offset_limited: int = 0  # cut to what is left of the total offset bound
     faults: int = 0
@@ -176,7 +181,7 @@ class MotoPlusClient:
                 if self.await_correction is not None and not behind:
                     self.await_correction(arrived)
                 if self.state == ARMED:  # not stopped (~/stop) while it waited
-                    self._correct()
+                    self._correct(arrived)
         elif isinstance(body, mp.Fault):
             self.last_fault = (body.code, body.text)
             self.last_error = f"controller FAULT {body.code}: {body.text}"
@@ -189,10 +194,13 @@ class MotoPlusClient:
             self._arm_requested.clear()
             self.state = CONNECTED
 
-    def _correct(self) -> None:
+    def _correct(self, state_arrived: float) -> None:
         now = time.time()
-        move = self.increment(now)
+        late = now - state_arrived > LATE_ANSWER * self.limits.period_s
+        move = None if late else self.increment(now)
         units, stamp = (0,) * 6, None
+        if late:  # it may reach the controller after its next period and move the robot a period later
+            self.counters.late_answers += 1
         if move is None:
             self.counters.zero_corrections += 1
         else:

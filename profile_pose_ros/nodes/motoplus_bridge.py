@@ -53,7 +53,7 @@ PARAMETERS = [
     Param("answer_wait", 0.5, "How long (in periods) a STATE's answer may wait for the correction measured at "
           "that STATE's trigger: it leaves as soon as that arrives, else with the newest one at this deadline. "
           "0 answers at once (the previous period's correction: a period more of loop delay). Past ~0.5 a late "
-          "thread may miss the controller's next period.", 0.0, 0.9),
+          "thread may miss the controller's next period (an answer later than 0.75 periods moves nothing).", 0.0, 0.7),
     Param("frame", "base", "Cartesian frame of the increments: base, robot, tool or user.", read_only=True),
     Param("base_frame", "base", "frame_id of robot_state."),
     Param("arm_on_start", False, "Arm (send HELLO) as soon as connected, without ~/start."),
@@ -79,7 +79,7 @@ class MotoPlusBridgeNode(Node):
         v = self.values = declare_all(self, PARAMETERS)
         self.limits = limits_from(v)
         self._lock = threading.Lock()
-        self._velocities: list[np.ndarray] = []  # corrections received since the last increment
+        self._velocities: list[tuple[int, np.ndarray]] = []  # (stamp ns, velocity) since the last increment
         self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity)
         self._fresh = threading.Condition(self._lock)  # a correction arrived
         self._ages: list[float] = []  # trigger-to-send times (s) since the last diagnostics
@@ -119,7 +119,7 @@ class MotoPlusBridgeNode(Node):
             return
         stamp = Time.from_msg(msg.header.stamp).nanoseconds
         with self._lock:
-            self._velocities.append(velocity)
+            self._velocities.append((stamp, velocity))
             self._latest = (stamp, velocity)
             self._fresh.notify()
 
@@ -144,10 +144,12 @@ class MotoPlusBridgeNode(Node):
         with self._lock:
             received, self._velocities = self._velocities, []
             latest = self._latest
-        if latest is None or now - latest[0] * 1e-9 > self.values["max_age"]:
+        max_age = self.values["max_age"]
+        if latest is None or now - latest[0] * 1e-9 > max_age:
             self.stale_periods += 1
             return None
-        velocity = np.mean(received, axis=0) if received else latest[1]
+        fresh = [v for stamp, v in received if now - stamp * 1e-9 <= max_age]  # not what piled up disarmed
+        velocity = np.mean(fresh, axis=0) if fresh else latest[1]
         return velocity * self.limits.period_s, latest[0] * 1e-9
 
     def _on_sent(self, units: tuple[int, ...], stamp: float, sent: float) -> None:
@@ -214,7 +216,8 @@ class MotoPlusBridgeNode(Node):
         else:
             level, message = WARN, f"{c.state}: not moving the robot ({c.last_error or 'not armed'})"
         values = {"state": c.state, "states": c.counters.states, "corrections": c.counters.corrections,
-                  "zero_corrections": c.counters.zero_corrections, "clamped": c.counters.clamped,
+                  "zero_corrections": c.counters.zero_corrections, "late_answers": c.counters.late_answers,
+                  "clamped": c.counters.clamped,
                   "offset_limited": c.counters.offset_limited, "faults": c.counters.faults,
                   "connections": c.counters.connections, "safety_checked": monitor.checked,
                   "safety_violations": monitor.total_violations,
