@@ -224,7 +224,7 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) 
     if not minima:
         return PoseEstimate(False, "refinement: no starting pose converged", corners=corners, timings=timings)
     cost, initial, result = min(minima, key=lambda m: m[0])
-    rival = _rival_minimum(minima, result, cost) if weighted and options.refine else None
+    rival = _rival_minimum(minima, result, cost) if weighted and options.refine and len(minima) > 1 else None
     if rival is not None:
         return PoseEstimate(False, reason_ambiguous(rival, result, cost), corners=corners, closed_form=initial,
                             timings=timings)

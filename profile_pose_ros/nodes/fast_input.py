@@ -17,6 +17,8 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.subscription import Subscription
 
+from .run import StopRequest
+
 
 class ServedDirectly(CallbackGroup):
     """A callback group whose entities the executor leaves alone: a FastInput serves them."""
@@ -66,7 +68,7 @@ class FastInput:
             handled += 1
 
 
-def spin(executor, fast_input: FastInput, stop, housekeeping_period: float = 0.01) -> None:
+def spin(executor, fast_input: FastInput, stop: StopRequest, housekeeping_period: float = 0.01) -> None:
     """Serve fast_input continuously and the executor's other work every housekeeping_period, until
     `stop` (Ctrl-C) or shutdown."""
     context = executor.context

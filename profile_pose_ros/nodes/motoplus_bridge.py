@@ -29,7 +29,7 @@ from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .messages import fill_pose, twist_stamped, twist_vector
-from .parameters import Param, declare_all
+from .parameters import Param, declare_all, updated
 from .run import run_node
 
 NODE_NAME = "motoplus_bridge"
@@ -184,7 +184,7 @@ class MotoPlusBridgeNode(Node):
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         """max_age, answer_wait, base_frame at run time (ranges checked by their descriptors; the rest is
         read-only). The socket thread reads self.values afresh each period: one dict swap, never half of one."""
-        self.values = dict(self.values, **{p.name: p.value for p in parameters})
+        self.values, _ = updated(self.values, parameters, lambda values: None)  # nothing to rebuild
         return SetParametersResult(successful=True)
 
     # ---------------------------------------------------------------- services
