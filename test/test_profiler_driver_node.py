@@ -56,13 +56,16 @@ class Rig:
         """Streaming, the MCU's clock trained, and the counters ready to be paired by the next trigger."""
         link = self.link
         assert self.ros.spin_until(lambda: link.state == "streaming" and link.trigger.ok
-                                   and link.matcher.pairing, timeout), (link.state, link.last_error)
+                                   and link.matcher.pairing, timeout), (
+            link.state, link.last_error, link.trigger.state, link.trigger.last_error, link.trigger.reopens,
+            link.matcher.offset, link.counters)
 
     def run(self, rate_hz: float, triggers: int, timeout: float = 30.0) -> None:
         self.cell.run_clock(rate_hz, triggers)
         counters = self.link.counters
         done = lambda: counters.published + counters.dropped + counters.discarded >= triggers  # noqa: E731
         assert self.ros.spin_until(done, timeout), (counters, self.cell.profiler.trigger_count)
+        assert self.cell.join_clock(5.0)  # its last truth is recorded after its profile went out
         self.ros.spin_until(lambda: len(self.profiles) >= counters.published, 2.0)
 
     def check_published_against_truth(self, stamp_tolerance: float = 2e-3) -> int:
@@ -161,6 +164,7 @@ def test_streams_again_after_the_cell_restarts(rig_factory) -> None:
     first = next(t for t, _ in reversed(rig.profiles) if t >= restarted) if rig.profiles else None
     assert first is not None and rig.link.counters.connections == 2
     rig.ros.spin_until(lambda: rig.link.counters.published >= before + 100, 10.0)
+    assert rig.cell.join_clock(5.0)
     # a profile that beats the new MCU's READY to the driver goes out with its receive time (counted),
     # never with a stale pairing
     assert rig.link.counters.unsynced <= 2

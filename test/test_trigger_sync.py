@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from profile_pose_ros.core.clock_sync import ClockMap, TriggerMatcher
+from profile_pose_ros.core.clock_sync import ClockMap, TriggerMatcher, lower_envelope_slope
 from profile_pose_ros.core.trigger_protocol import (MICROS_WRAP, Ack, McuError, MicrosUnwrapper, Pong, Ready, Trigger,
                                                     TriggerLineError, format_trigger, parse_line)
 
@@ -63,6 +63,31 @@ def test_clock_map_follows_drift_to_the_link_floor(drift_ppm: float) -> None:
     assert clock.converged
     assert abs(clock.drift_ppm - drift_ppm) < 5.0
     assert np.all(errors > 0) and np.max(errors) < 20e-6 + 30e-6  # the floor plus a few us
+
+
+@pytest.mark.parametrize("drift_ppm", [-5000.0, 300.0])
+def test_clock_map_holds_from_half_a_second_on_a_loaded_machine(drift_ppm: float) -> None:
+    """A third of the lines wait 1-25 ms for a busy CPU: stamps must not follow them (a least-squares slope
+    once tilted the young map by up to 1 %, stamps 5-12 ms off within the first seconds)."""
+    worst = []
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        device, arrival, host = simulated_samples(50.0, 4.0, drift_ppm, seed)
+        late = rng.random(len(host)) < 0.3
+        arrival[late] += rng.uniform(1e-3, 25e-3, late.sum())
+        clock = ClockMap()
+        errors = []
+        for d, a, h in zip(device, arrival, host):
+            clock.add(d, a)
+            errors.append(clock.to_host(d) - h)
+        worst.append(np.max(np.abs(errors[25:])))  # from 0.5 s on
+    assert max(worst) < 0.5e-3
+
+
+def test_lower_envelope_slope_ignores_points_above_it() -> None:
+    x = np.linspace(0.0, 2.0, 200)
+    y = 3e-4 * x + np.where(np.arange(200) % 3 == 0, 0.0, np.random.default_rng(1).uniform(0, 0.02, 200))
+    assert lower_envelope_slope(x, y) == pytest.approx(3e-4, abs=1e-9)
 
 
 def test_clock_map_restarts_when_the_device_clock_jumps_back() -> None:

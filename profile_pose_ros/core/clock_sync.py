@@ -14,16 +14,38 @@ from collections import OrderedDict, deque
 import numpy as np
 
 
-CHUNK_S = 0.5
+CHUNK_S = 0.1  # s of samples per envelope candidate (their least-delayed one)
+MIN_CHUNKS = 10
+
+
+def lower_envelope_slope(x: np.ndarray, y: np.ndarray) -> float:
+    """Slope of the line under every point that hugs them most closely (least total height above it):
+    the lower convex hull's edge over the mean of x. Delays only ever add height, so unlike a least-squares
+    fit it ignores however many late samples there are, as long as some got through quickly."""
+    hull: list[tuple[float, float]] = []
+    for point in zip(x.tolist(), y.tolist()):  # x ascending (monotone chain)
+        while len(hull) >= 2 and _turns_clockwise(hull[-2], hull[-1], point):
+            hull.pop()
+        hull.append(point)
+    middle = float(np.mean(x))
+    for (x1, y1), (x2, y2) in zip(hull, hull[1:]):
+        if x2 >= middle and x2 > x1:
+            return (y2 - y1) / (x2 - x1)
+    return 0.0
+
+
+def _turns_clockwise(a: tuple[float, float], b: tuple[float, float], c: tuple[float, float]) -> bool:
+    return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]) <= 0.0
 
 
 class ClockMap:
-    """host = offset + slope * device. The slope comes from the least-delayed sample of each half second
-    over a long window (least squares through all samples while there are too few); the offset from the
-    lower envelope of the last few seconds (a short span keeps a small slope error from growing)."""
+    """host = offset + slope * device. The slope is the lower envelope's over a long window (through the
+    least-delayed sample of each chunk); the offset comes from the lower envelope of the last few seconds
+    (a short span keeps a small slope error from growing). A least-squares slope, used here before, let a
+    loaded machine's late samples tilt the map by up to 1 %: stamps ms off within a second of start."""
 
     def __init__(self, window_s: float = 10.0, recent_s: float = 3.0, jump_s: float = 0.05,
-                 refit_s: float = 0.25, slope_after_s: float = 0.5, converged_after_s: float = 2.0,
+                 refit_s: float = 0.25, slope_after_s: float = 0.25, converged_after_s: float = 2.0,
                  max_drift: float = 0.01) -> None:
         self.window_s, self.recent_s = window_s, recent_s
         self.jump_s = jump_s  # a sample this far below the fit, or this far back in device time: a clock jump
@@ -79,14 +101,12 @@ class ClockMap:
         d, h = data[:, 0], data[:, 1]
         span = d[-1] - d[0]
         slope = 1.0
-        if span >= self.converged_after_s:  # through each half second's least-delayed sample
-            chunk = np.floor((d - d[0]) / CHUNK_S).astype(int)
+        if span >= self.slope_after_s:  # the envelope through each chunk's least-delayed sample
             residual = h - d
+            chunk = np.floor((d - d[0]) / min(CHUNK_S, span / MIN_CHUNKS)).astype(int)
             order = np.lexsort((residual, chunk))
             first = order[np.r_[True, np.diff(chunk[order]) > 0]]
-            slope = float(np.polyfit(d[first], h[first], 1)[0])
-        elif span >= self.slope_after_s:  # too few chunks yet: least squares through all
-            slope = float(np.polyfit(d, h, 1)[0])
+            slope = 1.0 + lower_envelope_slope(d[first], residual[first])
         slope = float(np.clip(slope, 1.0 - self.max_drift, 1.0 + self.max_drift))
         recent = d >= d[-1] - self.recent_s
         self._fit = (float(np.min(h[recent] - slope * d[recent])), slope)

@@ -26,6 +26,7 @@ RTT_WINDOW = 200  # round trips kept for that estimate
 KERNEL_STAMP = struct.Struct("qq")  # struct timespec (64-bit Linux)
 # Linux's value (asm-generic/socket.h) where Python's socket module does not export the name
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
+READY_WINDOW_S = 1.0  # a READY this soon after our RESET or our opening the port is the expected one
 CONVERGING_PING_PERIOD = 0.02  # s: ping faster until the clock map has a few seconds of samples
 
 
@@ -52,7 +53,7 @@ class TriggerLink:
         self._socket: socket.socket | None = None
         self._write_lock = threading.Lock()
         self._acks: dict[str, threading.Event] = {}
-        self._expect_ready = 0
+        self.ready_expected_until = 0.0  # monotonic: a READY before this answers our RESET or connection
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="trigger-link", daemon=True)
 
@@ -74,7 +75,7 @@ class TriggerLink:
         event = self._acks.setdefault(command, threading.Event())
         event.clear()
         if command == "RESET":
-            self._expect_ready += 1
+            self.ready_expected_until = time.monotonic() + READY_WINDOW_S
         if not self._write(command):
             return False
         return event.wait(timeout)
@@ -104,6 +105,12 @@ class TriggerLink:
                 continue
             self.state = CONNECTING
             self._pings.clear()
+            self._forget_device()
+            self.ready_expected_until = time.monotonic() + READY_WINDOW_S
+            # Opening a USB serial port resets the board (DTR); a network serial server may have lost lines
+            # while away. Either way the counters and clock start over. Do not wait for the board's READY:
+            # pyserial's open() flushes input, so a READY that is quick enough is never seen.
+            self.on_resync_needed("trigger MCU (re)connected")
             self._socket = self._kernel_stamped_socket(self._port)
             self._session()
             with self._write_lock:
@@ -205,16 +212,18 @@ class TriggerLink:
             self._acks.setdefault(message.command, threading.Event()).set()
         elif isinstance(message, Ready):
             self._last_seq = None
-            if self._expect_ready:
-                self._expect_ready -= 1
-            else:  # the MCU rebooted by itself (power, watchdog, DTR): its clock and counter restarted
-                self._unwrap.reset()
-                self._last_micros = None
-                self.clock.reset()
+            if time.monotonic() > self.ready_expected_until:  # the MCU rebooted by itself (power,
+                self._forget_device()  #                           watchdog): its clock and counter restarted
                 self.on_resync_needed("trigger MCU restarted")
         elif isinstance(message, McuError):
             self.mcu_errors += 1
             self.last_error = f"MCU: {message.text}"
+
+    def _forget_device(self) -> None:
+        self._unwrap.reset()
+        self._last_micros = None
+        self._last_seq = None
+        self.clock.reset()
 
     def _transmission(self, n_bytes: int) -> float:
         return 10.0 * n_bytes / self.baudrate  # 8N1: ten bits per byte

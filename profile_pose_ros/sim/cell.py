@@ -124,6 +124,13 @@ class SimCell:
                     return
             deadline += period
 
+    def join_clock(self, timeout: float) -> bool:
+        """Wait for a clock started with max_triggers to fire its last signal; False on timeout."""
+        clock = self._clock
+        if clock is not None:
+            clock.join(timeout)
+        return clock is None or not clock.is_alive()
+
     def stop_clock(self) -> None:
         self._stop.set()
         if self._clock is not None and self._clock.is_alive() and self._clock is not threading.current_thread():

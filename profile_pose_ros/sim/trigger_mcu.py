@@ -84,22 +84,30 @@ class TriggerMcu:
         with self._uart:
             due = max(time.monotonic(), self._line_free_at) + 10.0 * len(line) / self.baudrate  # 8N1
             self._line_free_at = due
-            if due - time.monotonic() > SPIN_S:
-                time.sleep(due - time.monotonic() - SPIN_S)
+            sleep = due - time.monotonic() - SPIN_S  # read the clock once: a second read can be past due
+            if sleep > 0:
+                time.sleep(sleep)
             while time.monotonic() < due:
                 pass
             if self.server.send(line):
                 self.lines_sent += 1
 
     def _on_connect(self, conn: socket.socket) -> None:
-        # Opening a Nano's USB serial port resets the board (DTR): it boots armed, its clock restarts (from
-        # micros_start, to exercise the 32-bit wrap), and it says READY.
+        # Opening a Nano's USB serial port resets the board (DTR).
+        self.reboot(wait=False)
+        threading.Thread(target=self._read_loop, args=(conn,), name="mcu-read", daemon=True).start()
+
+    def reboot(self, wait: bool = True) -> None:
+        """Power cycle or watchdog: the board boots armed, its clock restarts (from micros_start, to exercise
+        the 32-bit wrap), and it says READY."""
         with self._lock:
             self.seq, self.armed = 0, True
         self.boot_ns = time.monotonic_ns()
-        threading.Thread(target=self._write, args=(f"READY {FIRMWARE_NAME} {FIRMWARE_VERSION}\n".encode(),),
-                         daemon=True).start()
-        threading.Thread(target=self._read_loop, args=(conn,), name="mcu-read", daemon=True).start()
+        ready = f"READY {FIRMWARE_NAME} {FIRMWARE_VERSION}\n".encode()
+        if wait:
+            self._write(ready)
+        else:
+            threading.Thread(target=self._write, args=(ready,), daemon=True).start()
 
     def _read_loop(self, conn: socket.socket) -> None:
         buffer = b""
