@@ -44,8 +44,10 @@ _DEFAULTS = {p.name: p.default for p in BRIDGE_PARAMETERS}
 # The controller's apply time and the poses' stamps are read in different processes: on a saturated 2-core
 # machine those readings lag the events by a few ms (a 2 ms allowance gave false stale-motion counts).
 SCHEDULING_SLACK_S = 0.005
-# A pose counts as "during the fault" when its stamp is this much after the injection: a profile triggered
-# just before it carries the driver's trigger stamp, which on a saturated machine was seen ~5 ms off.
+# A pose counts as "during the fault" when its stamp is this much inside the fault's window: a profile
+# triggered just before the injection carries the driver's trigger stamp (seen ~5 ms off on a saturated
+# machine), and sim_cell applies a fault to a frame after rendering it, so a profile triggered a few ms
+# before the fault cleared can still be sent.
 STAMP_SLACK_S = 0.010
 
 
@@ -203,7 +205,7 @@ class FaultRun:
         moving = self._moving(t_inject, t_clear)
         stop_s = max(moving) - t_inject if moving else 0.0
         first = self._first_motion(resume)
-        during = [t for t, _ in self.exp.poses if t_inject + STAMP_SLACK_S <= t <= t_clear]
+        during = [t for t, _ in self.exp.poses if t_inject + STAMP_SLACK_S <= t <= t_clear - STAMP_SLACK_S]
         result = {
             "fault": fault.name, "must_stop": fault.must_stop,
             "stop_ms": stop_s * 1e3, "stop_periods": stop_s / self.period,
