@@ -67,3 +67,61 @@ def test_fast_and_plain_fail_with_the_same_reason(gauge, rng):
     assert {"corner detection"} <= reasons and any("reprojection" in r for r in reasons)
     bad_shape = estimate_pose(np.zeros((10, 3)), gauge)
     assert not bad_shape.ok and "(N, 2)" in bad_shape.reason
+
+
+@pytest.mark.parametrize("n", [4, 5, 7])
+def test_compiled_refine_equals_solver_refine_from_far_starts(rng, n):
+    """The basin search's hops and the four-ridge starts (refine_compiled) on random gauges: the same minimum,
+    the same covariance, with and without the polish and the weights."""
+    from profile_pose_ros.core.corners import detect_corners
+    from profile_pose_ros.core.fast_wrapper import refine_compiled
+    from profile_pose_ros.core.gauge_design import random_gauge
+    from profile_pose_ros.core.rotation import so3_exp
+    from profile_pose_ros.core.solver import PoseSolution, corner_residuals, refine
+
+    compared = 0
+    while compared < 12:
+        gauge = random_gauge(n, rng)
+        rotation, t = sample_pose(gauge, rng)
+        found = detect_corners(render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), n)
+        if not found.ok:
+            continue
+        cov = found.covariance(None)
+        start_rotation = rotation @ so3_exp(rng.normal(0.0, 0.02, 3))
+        start_t = t + rng.normal(0.0, 2e-3, 3)
+        start = PoseSolution(start_rotation, start_t, corner_residuals(gauge, found.corners, start_rotation, start_t))
+        for weighted, iterations, polish in [(True, 30, True), (False, 30, True), (True, 4, False)]:
+            plain = refine(gauge, found.corners, start, cov, weighted, iterations, polish)
+            compiled = refine_compiled(gauge, found.corners, start, cov, weighted, iterations, polish)
+            # a converged refinement is a fixed point both land on to rounding; the triage's four steps are
+            # not, and a Cholesky and an LU solve round differently along the way
+            tolerance = 1e-12 if polish else 1e-8
+            assert compiled.iterations == plain.iterations
+            assert np.max(np.abs(compiled.solution.translation - plain.solution.translation)) < tolerance
+            assert np.max(np.abs(compiled.solution.rotation - plain.solution.rotation)) < tolerance
+            assert np.max(np.abs(compiled.solution.residuals - plain.solution.residuals)) < tolerance
+            assert np.allclose(compiled.covariance, plain.covariance, rtol=1e-6 if polish else 1e-4, atol=1e-24)
+        compared += 1
+
+
+def test_fast_equals_plain_on_four_ridge_and_searched_poses(rng):
+    """The compiled path's fallbacks (n = 4 starts, the basin search) now refine with the compiled kernel."""
+    from profile_pose_ros.core.gauge_design import random_gauge
+
+    searched = 0
+    for n in (4, 5, 7):
+        for _ in range(6):
+            gauge = random_gauge(n, rng)
+            for _ in range(5):
+                rotation, t = sample_pose(gauge, rng)
+                points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+                fast, plain = both(points, gauge)
+                # random gauges are often poorly conditioned (sigma ~100 um): rounding shows at 1e-12
+                assert fast.ok == plain.ok and fast.reason == plain.reason
+                assert fast.search_starts == plain.search_starts
+                if plain.ok:
+                    assert np.max(np.abs(fast.t - plain.t)) < 1e-10
+                    assert np.max(np.abs(fast.R - plain.R)) < 1e-10
+                    assert np.allclose(fast.covariance, plain.covariance, rtol=1e-5, atol=1e-24)
+                searched += plain.search_starts > 0
+    assert searched > 0

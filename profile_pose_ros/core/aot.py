@@ -87,7 +87,7 @@ def load(build: bool = True, timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile fast.estimate with numba.pycc (runs in its own process: it loads LLVM)."""
+    """Compile fast.estimate and fast.refine_pose with numba.pycc (runs in its own process: it loads LLVM)."""
     import warnings
 
     from numba import types
@@ -112,6 +112,17 @@ def build_into(directory: Path) -> None:
     def estimate(points, q, u, w, width, length, opt, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info):
         return fast.estimate(points, q, u, w, width, length, opt, corners, rot, t, cov, cf_rot, cf_t, cf_res, res,
                              info)
+
+    boolean, int64 = types.boolean, types.int64
+    refine_signature = types.Tuple((int64, int64))(
+        frozen2, frozen1, frozen1, array2, array2, array1, array2, boolean, int64, boolean, array2, array1, array1,
+        array2)
+
+    @compiler.export("refine_pose", refine_signature)
+    def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, rot_out, t_out, r_out,
+                    cov_out):
+        return fast.refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, rot_out,
+                                t_out, r_out, cov_out)
 
     compiler.compile()
 

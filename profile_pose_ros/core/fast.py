@@ -584,8 +584,8 @@ def _closed_form(q, u, w, corners, info):
 
 
 @njit(**JIT)
-def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, cov_out):
-    """Levenberg-Marquardt + Gauss-Newton polish on SO(3) x R^3 (see solver.refine).
+def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, cov_out):
+    """Levenberg-Marquardt + Gauss-Newton polish (unless polish is False) on SO(3) x R^3 (see solver.refine).
 
     Returns (status, R, t, residuals, iterations); cov_out gets the (6, 6) covariance over [delta_F, t].
     """
@@ -612,7 +612,7 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, cov_
     new_rot = np.empty((3, 3))
     new_t = np.empty(3)
     polishing = False
-    total = max_iterations + (POLISH_STEPS if max_iterations > 0 else 0)
+    total = max_iterations + (POLISH_STEPS if max_iterations > 0 and polish else 0)
     it = 0
     while it < total:
         it += 1
@@ -692,6 +692,19 @@ def _unstack_residuals(r, out):
 
 
 @njit(**JIT)
+def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, rot_out, t_out, r_out,
+                cov_out):
+    """solver.refine() compiled, for the basin search and the four-ridge starts. Returns (status, iterations);
+    the pose, the stacked residuals and the (6, 6) covariance over [delta_F, t] go to the *_out arrays."""
+    status, rot2, t2, r2, iterations = _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations,
+                                               polish, cov_out)
+    rot_out[:, :] = rot2
+    t_out[:] = t2
+    r_out[:] = r2
+    return status, iterations
+
+
+@njit(**JIT)
 def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
              info):
     """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error)."""
@@ -722,7 +735,7 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
     max_it = int(opt[O_MAXIT]) if opt[O_REFINE] > 0 else 0
     cov = np.empty((6, 6))
     status, rot2, t2, r2, iterations = _refine(q, u, w, corners, rot, t, corner_cov, opt[O_WEIGHTED] > 0, max_it,
-                                               cov)
+                                               True, cov)
     if status != OK:
         return status, iterations, fit_rms, np.nan, cf_err
     if opt[O_REFINE] > 0:

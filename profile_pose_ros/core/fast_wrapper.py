@@ -17,7 +17,7 @@ from .corners import (REASON_CORNERS_NOT_INCREASING, ROBUST_PASSES, REASON_X_NOT
 from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_outside,
                         reason_reprojection)
 from .gauge import Gauge
-from .solver import REASON_CF_DEGENERATE, PoseSolution, reason_cf_rank
+from .solver import REASON_CF_DEGENERATE, PoseSolution, Refinement, reason_cf_rank, refine
 
 
 def option_vector(options: EstimatorOptions) -> np.ndarray:
@@ -76,32 +76,58 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
     return f"internal status {status}"
 
 
-_kernel = None
+_kernels = None
 kernel_name = ""
 
 
-def kernel():
-    """The compiled estimate() in use: loaded (and, the first time on a machine, built) on first need."""
-    global _kernel, kernel_name
-    if _kernel is None:
+def _loaded():
+    """The compiled module in use (estimate and refine_pose): loaded (and, the first time on a machine,
+    built) on first need."""
+    global _kernels, kernel_name
+    if _kernels is None:
         choice = os.environ.get("PROFILE_POSE_KERNEL", "auto")
         module = aot.load() if choice in ("auto", "aot") else None
         if module is not None:
-            _kernel, kernel_name = module.estimate, "prebuilt (aot)"
+            _kernels, kernel_name = module, "prebuilt (aot)"
         elif choice == "aot":
             raise RuntimeError("PROFILE_POSE_KERNEL=aot but the prebuilt estimator could not be built here")
         else:
             from . import fast as jit
 
-            _kernel, kernel_name = jit.estimate, "numba jit"
-    return _kernel
+            _kernels, kernel_name = jit, "numba jit"
+    return _kernels
+
+
+def kernel():
+    """The compiled estimate() in use."""
+    return _loaded().estimate
+
+
+def refine_compiled(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covariance: np.ndarray | None,
+                    weighted: bool = True, max_iterations: int = 30, polish: bool = True) -> Refinement:
+    """solver.refine() through the compiled kernel (same algorithm, same contract, within 1e-12): the basin
+    search and the four-ridge starts run it dozens of times per profile. Without a corner covariance it is
+    solver.refine() itself."""
+    if corner_covariance is None or not corner_covariance.size:
+        return refine(gauge, corners, start, corner_covariance, weighted, max_iterations, polish)
+    n2 = 2 * len(corners)
+    rotation, translation, residuals, covariance = np.empty((3, 3)), np.empty(3), np.empty(n2), np.empty((6, 6))
+    status, iterations = _loaded().refine_pose(
+        gauge.q, gauge.u, gauge.w, np.ascontiguousarray(corners, dtype=np.float64),
+        np.ascontiguousarray(start.rotation, dtype=np.float64),
+        np.ascontiguousarray(start.translation, dtype=np.float64),
+        np.ascontiguousarray(corner_covariance, dtype=np.float64), bool(weighted), int(max_iterations), bool(polish),
+        rotation, translation, residuals, covariance)
+    if status != fast.OK:
+        raise np.linalg.LinAlgError("Singular matrix")
+    return Refinement(PoseSolution(rotation, translation, residuals.reshape(-1, 2)), covariance, int(iterations))
 
 
 def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
     if gauge.n_ridges == 4:  # several starting poses (solver.four_ridge_candidates): the numpy path
         from .estimator import estimate_plain
 
-        return estimate_plain(points, gauge, options)
+        return estimate_plain(points, gauge, options, refine_compiled)
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
@@ -129,7 +155,7 @@ def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -
         from .estimator import estimate_plain
 
         # poorly determined, or perhaps in a wrong basin: the numpy path, whose basin search decides
-        return estimate_plain(points, gauge, options)
+        return estimate_plain(points, gauge, options, refine_compiled)
     return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
                         corners=corners, reprojection_error=error, covariance=cov,
                         closed_form=PoseSolution(cf_rot, cf_t, cf_res), refined=options.refine,

@@ -279,7 +279,7 @@ def subset_starts(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
 
 
 def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_covariance: np.ndarray | None,
-                  weighted: bool = True, max_iterations: int = 30) -> tuple[Refinement, int]:
+                  weighted: bool = True, max_iterations: int = 30, refine_fn=refine) -> tuple[Refinement, int]:
     """The lowest minimum found around a refined pose; returns it and how many starts were tried.
 
     When the pose is poorly determined (a long, curved valley of the cost along the weak mode: tilt of
@@ -295,7 +295,7 @@ def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_c
         scored = []
         for start in starts:
             try:
-                short = refine(gauge, corners, start, corner_covariance, weighted, TRIAGE_ITERATIONS, polish=False)
+                short = refine_fn(gauge, corners, start, corner_covariance, weighted, TRIAGE_ITERATIONS, polish=False)
             except np.linalg.LinAlgError:
                 continue
             scored.append((solution_cost(gauge, short.solution, corner_covariance, weighted), short.solution))
@@ -305,7 +305,7 @@ def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_c
             if cost >= best_cost * TRIAGE_MARGIN:
                 break
             try:
-                result = refine(gauge, corners, solution, corner_covariance, weighted, max_iterations)
+                result = refine_fn(gauge, corners, solution, corner_covariance, weighted, max_iterations)
             except np.linalg.LinAlgError:
                 continue
             cost = solution_cost(gauge, result.solution, corner_covariance, weighted)

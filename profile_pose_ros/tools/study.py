@@ -24,6 +24,8 @@ import numpy as np
 from ..core import estimate_pose, pose_error, render_profile, sample_pose
 from ..core.crlb import corner_crlb, dense_crlb, position_rotation_rms
 from ..core.estimator import is_wrong_minimum, pose_nees
+from ..core.fast_wrapper import refine_compiled
+from ..core.render_fast import trace_depth_fast
 from ..core.gauge_design import random_gauge
 from ..core.solver import paper_closed_form
 from .report import run_dir, summary, table, write_json
@@ -49,7 +51,7 @@ def error_row(gauge, estimate, rotation, t, n: int) -> list[float]:
 
 def wrong_minimum(points, gauge, estimate, rotation, t) -> float:
     """1.0 / 0.0 for an accepted estimate (estimator.is_wrong_minimum), NaN for a rejected one."""
-    return float(is_wrong_minimum(points, gauge, estimate, rotation, t)) if estimate.ok else np.nan
+    return float(is_wrong_minimum(points, gauge, estimate, rotation, t, refine_compiled)) if estimate.ok else np.nan
 
 
 def gauge_trial(task: tuple) -> dict:
@@ -68,7 +70,7 @@ def gauge_trial(task: tuple) -> dict:
     for _ in range(poses):
         rotation, t = sample_pose(gauge, rng)
         for noise in noises:
-            points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng)
+            points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, trace=trace_depth_fast)
             paper = estimate_pose(points, gauge, max_reprojection_error=1.0, search=False, max_position_sigma=np.inf)
             row = error_row(gauge, paper, rotation, t, n)
             rows[noise].append(row if noise > 0 else row[:6] + [np.nan])
@@ -79,7 +81,7 @@ def gauge_trial(task: tuple) -> dict:
             spiky_ours = spiky_paper = np.nan
             if n == 5:
                 spiky = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, spike_fraction=SPIKES,
-                                       spike_range=SPIKE_RANGE)
+                                       spike_range=SPIKE_RANGE, trace=trace_depth_fast)
                 spiky_ours = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0), rotation, t, n)[4]
                 spiky_paper = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0,
                                                              **PAPER_PIPELINE), rotation, t, n)[4]
@@ -107,7 +109,7 @@ def dense_trial(task: tuple) -> np.ndarray:
     out = []
     for _ in range(poses):
         rotation, t = sample_pose(gauge, rng)
-        points = render_profile(gauge, rotation, t, noise_std=TABLE_NOISE, rng=rng)
+        points = render_profile(gauge, rotation, t, noise_std=TABLE_NOISE, rng=rng, trace=trace_depth_fast)
         row = []
         for model in ("corners", "dense"):
             estimate = estimate_pose(points, gauge, refine_model=model)
