@@ -21,9 +21,12 @@ from .solver import residual_covariance, residual_jacobian
 
 
 def corner_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, noise_std: float,
-                profiler: ProfilerModel = DEFAULT_PROFILER, options: CornerOptions = CornerOptions()) -> np.ndarray:
-    """6x6 bound for the corner model at the true pose (raises ValueError if the corners are not all seen)."""
-    found = detect_corners(render_profile(gauge, rotation, translation, profiler=profiler), gauge.n_ridges, options)
+                profiler: ProfilerModel = DEFAULT_PROFILER, options: CornerOptions = CornerOptions(),
+                trace=None) -> np.ndarray:
+    """6x6 bound for the corner model at the true pose (raises ValueError if the corners are not all seen).
+    `trace`: render_profile's ray trace (the compiled one for studies)."""
+    found = detect_corners(render_profile(gauge, rotation, translation, profiler=profiler, trace=trace),
+                           gauge.n_ridges, options)
     if not found.ok:
         raise ValueError(f"corners not detectable at this pose: {found.reason}")
     corner_cov = found.covariance(noise_std)
@@ -58,7 +61,7 @@ def depth_jacobian(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray,
 
 
 def dense_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, noise_std: float,
-               profiler: ProfilerModel = DEFAULT_PROFILER) -> np.ndarray:
+               profiler: ProfilerModel = DEFAULT_PROFILER, trace=None) -> np.ndarray:
     """6x6 bound for an estimator using every lit top-face point's depth (i.i.d. Gaussian noise on z).
 
     Uses the analytic depth Jacobian of dense.py (one render); depth_jacobian() is the finite-difference
@@ -66,7 +69,7 @@ def dense_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, nois
     """
     from .dense import DenseOptions, depth_model, select_points
 
-    points = render_profile(gauge, rotation, translation, profiler=profiler)
+    points = render_profile(gauge, rotation, translation, profiler=profiler, trace=trace)
     points = points[np.isfinite(points).all(axis=1)]
     index, face = select_points(gauge, points, rotation, translation, DenseOptions(ridge_margin=1e-6))
     _, g = depth_model(gauge, points[index, 0], face, rotation, translation)

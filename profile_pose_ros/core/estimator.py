@@ -282,10 +282,11 @@ def pose_nees(estimate: PoseEstimate, rotation: np.ndarray, translation: np.ndar
 
 
 def is_wrong_minimum(points: np.ndarray, gauge: Gauge, estimate: PoseEstimate, rotation: np.ndarray,
-                     translation: np.ndarray, refine_fn=refine) -> bool:
+                     translation: np.ndarray, refine_fn=refine, corner_cov: np.ndarray | None = None) -> bool:
     """True if an accepted estimate is a higher cost minimum than the one refined from the true pose and
     more than one standard deviation (Mahalanobis) from it: the search stopped in the wrong basin."""
-    corner_cov = detect_corners(points, gauge.n_ridges).covariance(None)
+    if corner_cov is None:
+        corner_cov = detect_corners(points, gauge.n_ridges).covariance(None)
     at_truth = PoseSolution(rotation, translation, corner_residuals(gauge, estimate.corners, rotation, translation))
     truth = refine_fn(gauge, estimate.corners, at_truth, corner_cov)
     found = PoseSolution(estimate.R, estimate.t, corner_residuals(gauge, estimate.corners, estimate.R, estimate.t))

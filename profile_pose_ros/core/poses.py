@@ -23,12 +23,12 @@ class PoseRange:
 
 
 def corners_visible(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray,
-                    profiler: ProfilerModel = DEFAULT_PROFILER, clearance: float = 1e-3) -> bool:
+                    profiler: ProfilerModel = DEFAULT_PROFILER, clearance: float = 1e-3, trace=None) -> bool:
     """All n corners inside the measurement range and lit, with `clearance` of lit profile around each."""
     corners = true_corners(gauge, rotation, translation)
     if not np.all(profiler.in_range(corners[:, 0], corners[:, 1])):
         return False
-    profile = render_profile(gauge, rotation, translation, profiler=profiler)
+    profile = render_profile(gauge, rotation, translation, profiler=profiler, trace=trace)
     for x, z in corners:
         near = np.abs(profile[:, 0] - x) <= clearance
         if not near.any() or not np.all(np.abs(profile[near, 1] - z) < 5 * clearance):
@@ -42,8 +42,10 @@ def mid_height(gauge: Gauge) -> float:
 
 
 def sample_pose(gauge: Gauge, rng: np.random.Generator, pose_range: PoseRange = PoseRange(),
-                profiler: ProfilerModel = DEFAULT_PROFILER, max_tries: int = 1000) -> tuple[np.ndarray, np.ndarray]:
-    """A random (R, t) in the range with every corner visible (rejection sampling)."""
+                profiler: ProfilerModel = DEFAULT_PROFILER, max_tries: int = 1000,
+                trace=None) -> tuple[np.ndarray, np.ndarray]:
+    """A random (R, t) in the range with every corner visible (rejection sampling); `trace` as in
+    render_profile."""
     middle = mid_height(gauge)
     for _ in range(max_tries):
         tilt = pose_range.max_tilt * np.sqrt(rng.uniform())  # uniform over the cone's cap
@@ -54,6 +56,6 @@ def sample_pose(gauge: Gauge, rng: np.random.Generator, pose_range: PoseRange = 
         aim = np.array([rng.uniform(-1, 1) * pose_range.max_offset, rng.uniform(-1, 1) * pose_range.max_offset,
                         middle])
         translation = aim - rng.uniform(*pose_range.standoff) * rotation[:, 2]
-        if corners_visible(gauge, rotation, translation, profiler):
+        if corners_visible(gauge, rotation, translation, profiler, trace=trace):
             return rotation, translation
     raise RuntimeError(f"no pose with all corners visible after {max_tries} tries")

@@ -62,6 +62,7 @@ class RobotController:
         self.last_fault: tuple[int, str] = (0, "")
         self.faults_raised = 0
         self.clamped = 0
+        self.replaced = 0  # CORRECTIONs overwritten by a newer one before a period applied them: lost motion
         self.states_sent = 0
         self.session_end = ""  # why the last session ended: STOP, a FAULT, the peer leaving, a test's disconnect
         self._cut = False  # the last applied increment was clamped
@@ -242,6 +243,7 @@ class RobotController:
             return False
         session.last_seq, session.last_frame = frame.seq, now
         if isinstance(body, mp.Correction):
+            self.replaced += int(session.pending is not None)
             session.pending = (frame.seq, body)
         elif isinstance(body, mp.Stop):
             self._end_session("STOP")

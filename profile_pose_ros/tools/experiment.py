@@ -323,6 +323,18 @@ def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise
     return {"rate_hz": rate_hz, "runs": runs, "noise_floor_um": floor, "diagnostics": diagnostics}
 
 
+def loop_health(diagnostics: dict) -> str:
+    """How often the loop had nothing fresh to send: over the whole run (open-loop periods send nothing)."""
+    def value(node: str, key: str) -> str:
+        return next((v[key] for name, v in diagnostics.items() if name.split("/")[-1].startswith(node) and key in v),
+                    "?")
+
+    return (f"loop: {value('motoplus_bridge', 'corrections')} corrections sent, "
+            f"{value('motoplus_bridge', 'zero_corrections')} of them zero (no fresh correction; "
+            f"{value('motoplus_bridge', 'late_answers')} answers too late to use); the controller replaced "
+            f"{value('sim_cell', 'robot_corrections_replaced')} not yet applied by a newer one")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rate", type=float, default=83.333, help="control rate: 83.333 (12 ms) or 250 (4 ms)")
@@ -363,6 +375,7 @@ def main(argv=None) -> int:
     print("loop noise floor, closed loop holding still (std, um, x y z): estimate "
           + " ".join(f"{v:.1f}" for v in floor["estimate"]) + "; arm (truth) "
           + " ".join(f"{v:.1f}" for v in floor["truth"]))
+    print(loop_health(result["diagnostics"]))
     print("improvement >= the paper's on Mp, zeta and Mf, measured by the estimate (the paper's way) and by the "
           "arm's true motion (the simulator's truth, which a real cell does not have):")
     for c, t in zip(checks, truth_checks):

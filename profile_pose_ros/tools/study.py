@@ -22,6 +22,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from ..core import estimate_pose, pose_error, render_profile, sample_pose
+from ..core.corners import detect_corners
 from ..core.crlb import corner_crlb, dense_crlb, position_rotation_rms
 from ..core.estimator import is_wrong_minimum, pose_nees
 from ..core.fast_wrapper import refine_compiled
@@ -49,9 +50,11 @@ def error_row(gauge, estimate, rotation, t, n: int) -> list[float]:
             *pose_error(estimate.R, estimate.t, rotation, t), pose_nees(estimate, rotation, t)]
 
 
-def wrong_minimum(points, gauge, estimate, rotation, t) -> float:
+def wrong_minimum(points, gauge, estimate, rotation, t, corner_cov) -> float:
     """1.0 / 0.0 for an accepted estimate (estimator.is_wrong_minimum), NaN for a rejected one."""
-    return float(is_wrong_minimum(points, gauge, estimate, rotation, t, refine_compiled)) if estimate.ok else np.nan
+    if not estimate.ok:
+        return np.nan
+    return float(is_wrong_minimum(points, gauge, estimate, rotation, t, refine_compiled, corner_cov))
 
 
 def gauge_trial(task: tuple) -> dict:
@@ -68,7 +71,7 @@ def gauge_trial(task: tuple) -> dict:
     rows = {noise: [] for noise in noises}
     table, bounds, extra = [], [], []
     for _ in range(poses):
-        rotation, t = sample_pose(gauge, rng)
+        rotation, t = sample_pose(gauge, rng, trace=trace_depth_fast)
         for noise in noises:
             points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, trace=trace_depth_fast)
             paper = estimate_pose(points, gauge, max_reprojection_error=1.0, search=False, max_position_sigma=np.inf)
@@ -85,11 +88,15 @@ def gauge_trial(task: tuple) -> dict:
                 spiky_ours = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0), rotation, t, n)[4]
                 spiky_paper = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0,
                                                              **PAPER_PIPELINE), rotation, t, n)[4]
-            extra.append([wrong_minimum(points, gauge, ours, rotation, t), wrong_minimum(points, gauge, paper, rotation, t),
+            found = detect_corners(points, n) if ours.ok or paper.ok else None  # once for both checks
+            corner_cov = found.covariance(None) if found is not None and found.ok else None
+            extra.append([wrong_minimum(points, gauge, ours, rotation, t, corner_cov),
+                          wrong_minimum(points, gauge, paper, rotation, t, corner_cov),
                           float(ours.search_starts > 0),
                           spiky_ours, spiky_paper])
-            corner = position_rotation_rms(corner_crlb(gauge, rotation, t, TABLE_NOISE))
-            dense = position_rotation_rms(dense_crlb(gauge, rotation, t, TABLE_NOISE)) if with_dense else (np.nan,) * 2
+            corner = position_rotation_rms(corner_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast))
+            dense = (position_rotation_rms(dense_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast))
+                     if with_dense else (np.nan,) * 2)
             bounds.append([*corner, *dense])
     return {"n": n, "seed": seed, "rows": {noise: np.array(r) for noise, r in rows.items()},
             "table": np.array(table), "extra": np.array(extra), "bounds": np.array(bounds)}
@@ -108,14 +115,14 @@ def dense_trial(task: tuple) -> np.ndarray:
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(poses):
-        rotation, t = sample_pose(gauge, rng)
+        rotation, t = sample_pose(gauge, rng, trace=trace_depth_fast)
         points = render_profile(gauge, rotation, t, noise_std=TABLE_NOISE, rng=rng, trace=trace_depth_fast)
         row = []
         for model in ("corners", "dense"):
             estimate = estimate_pose(points, gauge, refine_model=model)
             row += list(pose_error(estimate.R, estimate.t, rotation, t)) if estimate.ok else [np.nan, np.nan]
-        row += [*position_rotation_rms(corner_crlb(gauge, rotation, t, TABLE_NOISE)),
-                *position_rotation_rms(dense_crlb(gauge, rotation, t, TABLE_NOISE))]
+        row += [*position_rotation_rms(corner_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast)),
+                *position_rotation_rms(dense_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast))]
         out.append(row)
     return np.array(out)
 
