@@ -125,3 +125,29 @@ def test_fast_equals_plain_on_four_ridge_and_searched_poses(rng):
                     assert np.allclose(fast.covariance, plain.covariance, rtol=1e-5, atol=1e-24)
                 searched += plain.search_starts > 0
     assert searched > 0
+
+
+def test_compiled_detection_equals_detect_corners(rng):
+    """The numpy stages' compiled corner detection: same corners, face fits, covariance and failure reasons."""
+    from profile_pose_ros.core.corners import CornerOptions, detect_corners
+    from profile_pose_ros.core.fast_wrapper import detect_corners_compiled
+    from profile_pose_ros.core.gauge_design import random_gauge
+
+    for n in (4, 5, 7, 10):
+        gauge = random_gauge(n, rng)
+        for options in (CornerOptions(), CornerOptions(robust=False)):
+            for noise, spikes in [(5e-6, 0.0), (5e-6, 0.01), (50e-6, 0.0)]:
+                rotation, t = sample_pose(gauge, rng)
+                points = render_profile(gauge, rotation, t, noise_std=noise, spike_fraction=spikes, rng=rng)
+                for count in (n, n + 1):  # a wrong count fails: the reasons must match too
+                    plain, compiled = detect_corners(points, count, options), detect_corners_compiled(points, count,
+                                                                                                      options)
+                    assert (compiled.ok, compiled.reason) == (plain.ok, plain.reason)
+                    if plain.ok:
+                        assert np.max(np.abs(compiled.corners - plain.corners)) < 1e-12
+                        assert compiled.fit_rms == pytest.approx(plain.fit_rms, rel=1e-9)
+                        for noise_std in (None, 5e-6):
+                            assert np.allclose(compiled.covariance(noise_std), plain.covariance(noise_std),
+                                               rtol=1e-9, atol=1e-30)
+    empty = np.full((50, 2), np.nan)
+    assert detect_corners_compiled(empty, 5).reason == detect_corners(empty, 5).reason

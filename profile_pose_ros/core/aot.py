@@ -87,7 +87,8 @@ def load(build: bool = True, timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile fast.estimate and fast.refine_pose with numba.pycc (runs in its own process: it loads LLVM)."""
+    """Compile fast.estimate, fast.refine_pose and fast.detect with numba.pycc (in its own process: it loads
+    LLVM)."""
     import warnings
 
     from numba import types
@@ -123,6 +124,12 @@ def build_into(directory: Path) -> None:
                     cov_out):
         return fast.refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, rot_out,
                                 t_out, r_out, cov_out)
+
+    detect_signature = types.Tuple((int64, int64, f8))(array2, int64, frozen1, array2, array2, array1, array1, array2)
+
+    @compiler.export("detect", detect_signature)
+    def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
+        return fast.detect(points, n_corners, opt, corners, jac, line_var, info, lines_out)
 
     compiler.compile()
 

@@ -22,11 +22,11 @@ from .solver import residual_covariance, residual_jacobian
 
 def corner_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, noise_std: float,
                 profiler: ProfilerModel = DEFAULT_PROFILER, options: CornerOptions = CornerOptions(),
-                trace=None) -> np.ndarray:
+                trace=None, detect=detect_corners) -> np.ndarray:
     """6x6 bound for the corner model at the true pose (raises ValueError if the corners are not all seen).
-    `trace`: render_profile's ray trace (the compiled one for studies)."""
-    found = detect_corners(render_profile(gauge, rotation, translation, profiler=profiler, trace=trace),
-                           gauge.n_ridges, options)
+    `trace` and `detect`: the ray trace and the corner detection to use (the compiled ones for studies)."""
+    found = detect(render_profile(gauge, rotation, translation, profiler=profiler, trace=trace),
+                   gauge.n_ridges, options)
     if not found.ok:
         raise ValueError(f"corners not detectable at this pose: {found.reason}")
     corner_cov = found.covariance(noise_std)

@@ -7,6 +7,7 @@ the gauge (reprojection error under a bound, corners inside the gauge's footprin
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from functools import lru_cache
 from dataclasses import dataclass, field, replace
 
@@ -191,12 +192,24 @@ def _implausible_cost(dof: int) -> float:
     return float(2.0 * gammainccinv(dof / 2.0, 1e-4))
 
 
-def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, refine_fn=refine) -> PoseEstimate:
-    """The numpy reference implementation, stage by stage, with per-stage timings. The compiled path hands
-    its n = 4 and basin-search cases here with refine_fn = the compiled refine()."""
+@dataclass(frozen=True)
+class Stages:
+    """The corner detection and refinement estimate_plain() runs: numpy (the reference) by default; the
+    compiled path hands its n = 4 and basin-search cases over with its kernels (fast_wrapper.COMPILED)."""
+
+    detect: Callable = detect_corners
+    refine: Callable = refine
+
+
+NUMPY = Stages()
+
+
+def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, stages: Stages = NUMPY
+                   ) -> PoseEstimate:
+    """The numpy reference implementation, stage by stage, with per-stage timings."""
     timings = {}
     start = time.perf_counter()
-    found = detect_corners(points, gauge.n_ridges, options.corners)
+    found = stages.detect(points, gauge.n_ridges, options.corners)
     timings["corner_detection"] = time.perf_counter() - start
     if not found.ok:
         return PoseEstimate(False, f"corner detection: {found.reason}", timings=timings)
@@ -214,8 +227,8 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, 
     minima = []
     for candidate in starts:
         try:
-            attempt = refine_fn(gauge, corners, candidate, corner_cov, weighted,
-                                options.max_iterations if options.refine or len(starts) > 1 else 0)
+            attempt = stages.refine(gauge, corners, candidate, corner_cov, weighted,
+                                    options.max_iterations if options.refine or len(starts) > 1 else 0)
         except np.linalg.LinAlgError as exc:
             if len(starts) == 1:
                 return PoseEstimate(False, f"refinement: {exc}", corners=corners, closed_form=candidate,
@@ -233,7 +246,7 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, 
     if needs_search(result, cost, len(corners), weighted, options):
         search_start = time.perf_counter()
         result, search_starts = search_minima(gauge, corners, result, corner_cov, weighted, options.max_iterations,
-                                              refine_fn)
+                                              stages.refine)
         timings["search"] = time.perf_counter() - search_start
     solution, refined, iterations = initial, False, 0
     if options.refine:
@@ -282,13 +295,13 @@ def pose_nees(estimate: PoseEstimate, rotation: np.ndarray, translation: np.ndar
 
 
 def is_wrong_minimum(points: np.ndarray, gauge: Gauge, estimate: PoseEstimate, rotation: np.ndarray,
-                     translation: np.ndarray, refine_fn=refine, corner_cov: np.ndarray | None = None) -> bool:
+                     translation: np.ndarray, stages: Stages = NUMPY, corner_cov: np.ndarray | None = None) -> bool:
     """True if an accepted estimate is a higher cost minimum than the one refined from the true pose and
     more than one standard deviation (Mahalanobis) from it: the search stopped in the wrong basin."""
     if corner_cov is None:
-        corner_cov = detect_corners(points, gauge.n_ridges).covariance(None)
+        corner_cov = stages.detect(points, gauge.n_ridges).covariance(None)
     at_truth = PoseSolution(rotation, translation, corner_residuals(gauge, estimate.corners, rotation, translation))
-    truth = refine_fn(gauge, estimate.corners, at_truth, corner_cov)
+    truth = stages.refine(gauge, estimate.corners, at_truth, corner_cov)
     found = PoseSolution(estimate.R, estimate.t, corner_residuals(gauge, estimate.corners, estimate.R, estimate.t))
     d = np.concatenate([so3_log(estimate.R.T @ truth.solution.rotation), truth.solution.translation - estimate.t])
     higher = solution_cost(gauge, found, corner_cov, True) > solution_cost(gauge, truth.solution, corner_cov, True)

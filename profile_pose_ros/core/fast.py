@@ -173,8 +173,9 @@ def _fit_line(px, pz, first, last, opt, out, k):
 
 
 @njit(**JIT)
-def _detect(points, n_corners, opt, corners, jac, line_var, info):
-    """Corner detection; returns (status, n_lines, fit_rms). info carries numbers for the reason."""
+def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
+    """Corner detection; returns (status, n_lines, fit_rms). info carries numbers for the reason; lines_out
+    ((n_corners + 1, 10), rows as _fit_line's) gets the face fits when it succeeds."""
     n_all = points.shape[0]
     px = np.empty(n_all)
     pz = np.empty(n_all)
@@ -287,6 +288,7 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info):
         line_var[2 * k + 1] = sigma * sigma / line[6]
         used += line[6] - 2
         ss += line[7] * line[7] * (line[6] - 2)
+        lines_out[k, :] = line
     return OK, n_lines, math.sqrt(ss / max(1.0, used))
 
 
@@ -692,6 +694,12 @@ def _unstack_residuals(r, out):
 
 
 @njit(**JIT)
+def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
+    """corners.detect_corners() compiled (the numpy path's stages and the studies call it per profile)."""
+    return _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out)
+
+
+@njit(**JIT)
 def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, rot_out, t_out, r_out,
                 cov_out):
     """solver.refine() compiled, for the basin search and the four-ridge starts. Returns (status, iterations);
@@ -714,7 +722,7 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
     cov_out[:, :] = np.nan
     jac = np.empty((2 * n, 2 * (n + 1)))
     line_var = np.empty(2 * (n + 1))
-    status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info)
+    status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info, np.empty((n + 1, 10)))
     if status != OK:
         return status, 0, np.nan, np.nan, np.nan
     status, rot, t = _closed_form(q, u, w, corners, info)

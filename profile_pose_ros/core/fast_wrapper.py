@@ -12,9 +12,10 @@ import numpy as np
 
 from . import aot
 from . import fast_codes as fast
-from .corners import (REASON_CORNERS_NOT_INCREASING, ROBUST_PASSES, REASON_X_NOT_INCREASING, reason_corner_count,
-                      reason_corner_not_between, reason_steep_segment, reason_too_few_points)
-from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_outside,
+from .corners import (REASON_CORNERS_NOT_INCREASING, ROBUST_PASSES, REASON_X_NOT_INCREASING, CornerOptions,
+                      CornerResult, LineFit, reason_corner_count, reason_corner_not_between, reason_steep_segment,
+                      reason_too_few_points)
+from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, Stages, position_sigma, reason_outside,
                         reason_reprojection)
 from .gauge import Gauge
 from .solver import REASON_CF_DEGENERATE, PoseSolution, Refinement, reason_cf_rank, refine
@@ -49,18 +50,23 @@ def option_vector(options: EstimatorOptions) -> np.ndarray:
     return v
 
 
-def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptions, error: float) -> str:
-    n = gauge.n_ridges
+def _detection_reason(status: int, info: np.ndarray, n: int, options: CornerOptions) -> str | None:
     detection = {
         fast.TOO_FEW_POINTS: lambda: reason_too_few_points(int(info[0]), n, int(info[1])),
         fast.X_NOT_INCREASING: lambda: REASON_X_NOT_INCREASING,
-        fast.STEEP_SEGMENT: lambda: reason_steep_segment(int(info[0]), info[1], options.corners),
+        fast.STEEP_SEGMENT: lambda: reason_steep_segment(int(info[0]), info[1], options),
         fast.WRONG_CORNER_COUNT: lambda: reason_corner_count(int(info[1]), n),
         fast.CORNER_NOT_BETWEEN: lambda: reason_corner_not_between(int(info[0]), info[1], info[2], info[3]),
         fast.CORNERS_NOT_INCREASING: lambda: REASON_CORNERS_NOT_INCREASING,
     }
-    if status in detection:
-        return f"corner detection: {detection[status]()}"
+    return detection[status]() if status in detection else None
+
+
+def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptions, error: float) -> str:
+    n = gauge.n_ridges
+    detection = _detection_reason(status, info, n, options.corners)
+    if detection is not None:
+        return f"corner detection: {detection}"
     if status == fast.CF_RANK:
         return f"closed form: {reason_cf_rank(n, int(info[0]))}"
     if status == fast.CF_DEGENERATE:
@@ -103,6 +109,32 @@ def kernel():
     return _loaded().estimate
 
 
+def detect_corners_compiled(points: np.ndarray, n_corners: int, options: CornerOptions = CornerOptions()
+                            ) -> CornerResult:
+    """corners.detect_corners() through the compiled kernel: the same corners, face fits and reasons."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 2:
+        return CornerResult(False, f"profile must be an (N, 2) array, got shape {points.shape}")
+    corners, jac = np.empty((n_corners, 2)), np.empty((2 * n_corners, 2 * (n_corners + 1)))
+    lines, info = np.empty((n_corners + 1, 10)), np.zeros(4)
+    status, _, fit_rms = _loaded().detect(points, n_corners, option_vector(_corner_only(options)), corners, jac,
+                                          np.empty(2 * (n_corners + 1)), info, lines)
+    if status != fast.OK:
+        return CornerResult(False, _detection_reason(status, info, n_corners, options))
+    fits = [LineFit(int(row[0]), int(row[1]), row[2], row[3], row[4], row[5], int(row[6]), row[7], row[8], row[9])
+            for row in lines]
+    return CornerResult(True, "", corners, fits, jac, fit_rms)
+
+
+def _corner_only(options: CornerOptions) -> EstimatorOptions:
+    """Estimator options around corner options, one object per corner options (option_vector caches on it)."""
+    cached = options.__dict__.get("_estimator_options")
+    if cached is None:
+        cached = EstimatorOptions(corners=options)
+        object.__setattr__(options, "_estimator_options", cached)
+    return cached
+
+
 def refine_compiled(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covariance: np.ndarray | None,
                     weighted: bool = True, max_iterations: int = 30, polish: bool = True) -> Refinement:
     """solver.refine() through the compiled kernel (same algorithm, same contract, within 1e-12): the basin
@@ -123,11 +155,14 @@ def refine_compiled(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corn
     return Refinement(PoseSolution(rotation, translation, residuals.reshape(-1, 2)), covariance, int(iterations))
 
 
+COMPILED = Stages(detect_corners_compiled, refine_compiled)  # estimate_plain()'s stages on the compiled kernels
+
+
 def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
     if gauge.n_ridges == 4:  # several starting poses (solver.four_ridge_candidates): the numpy path
         from .estimator import estimate_plain
 
-        return estimate_plain(points, gauge, options, refine_compiled)
+        return estimate_plain(points, gauge, options, COMPILED)
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
@@ -155,7 +190,7 @@ def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -
         from .estimator import estimate_plain
 
         # poorly determined, or perhaps in a wrong basin: the numpy path, whose basin search decides
-        return estimate_plain(points, gauge, options, refine_compiled)
+        return estimate_plain(points, gauge, options, COMPILED)
     return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
                         corners=corners, reprojection_error=error, covariance=cov,
                         closed_form=PoseSolution(cf_rot, cf_t, cf_res), refined=options.refine,

@@ -22,10 +22,9 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from ..core import estimate_pose, pose_error, render_profile, sample_pose
-from ..core.corners import detect_corners
 from ..core.crlb import corner_crlb, dense_crlb, position_rotation_rms
 from ..core.estimator import is_wrong_minimum, pose_nees
-from ..core.fast_wrapper import refine_compiled
+from ..core.fast_wrapper import COMPILED
 from ..core.render_fast import trace_depth_fast
 from ..core.gauge_design import random_gauge
 from ..core.solver import paper_closed_form
@@ -54,7 +53,16 @@ def wrong_minimum(points, gauge, estimate, rotation, t, corner_cov) -> float:
     """1.0 / 0.0 for an accepted estimate (estimator.is_wrong_minimum), NaN for a rejected one."""
     if not estimate.ok:
         return np.nan
-    return float(is_wrong_minimum(points, gauge, estimate, rotation, t, refine_compiled, corner_cov))
+    return float(is_wrong_minimum(points, gauge, estimate, rotation, t, COMPILED, corner_cov))
+
+
+def bound_rms(gauge, rotation, t, with_dense: bool) -> list[float]:
+    """[corner CRLB pos, rot, dense CRLB pos, rot] (rms, m and rad) at TABLE_NOISE; dense NaN unless asked."""
+    corner = position_rotation_rms(corner_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast,
+                                               detect=COMPILED.detect))
+    if not with_dense:
+        return [*corner, np.nan, np.nan]
+    return [*corner, *position_rotation_rms(dense_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast))]
 
 
 def gauge_trial(task: tuple) -> dict:
@@ -88,16 +96,13 @@ def gauge_trial(task: tuple) -> dict:
                 spiky_ours = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0), rotation, t, n)[4]
                 spiky_paper = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0,
                                                              **PAPER_PIPELINE), rotation, t, n)[4]
-            found = detect_corners(points, n) if ours.ok or paper.ok else None  # once for both checks
+            found = COMPILED.detect(points, n) if ours.ok or paper.ok else None  # once for both checks
             corner_cov = found.covariance(None) if found is not None and found.ok else None
             extra.append([wrong_minimum(points, gauge, ours, rotation, t, corner_cov),
                           wrong_minimum(points, gauge, paper, rotation, t, corner_cov),
                           float(ours.search_starts > 0),
                           spiky_ours, spiky_paper])
-            corner = position_rotation_rms(corner_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast))
-            dense = (position_rotation_rms(dense_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast))
-                     if with_dense else (np.nan,) * 2)
-            bounds.append([*corner, *dense])
+            bounds.append(bound_rms(gauge, rotation, t, with_dense))
     return {"n": n, "seed": seed, "rows": {noise: np.array(r) for noise, r in rows.items()},
             "table": np.array(table), "extra": np.array(extra), "bounds": np.array(bounds)}
 
@@ -121,8 +126,7 @@ def dense_trial(task: tuple) -> np.ndarray:
         for model in ("corners", "dense"):
             estimate = estimate_pose(points, gauge, refine_model=model)
             row += list(pose_error(estimate.R, estimate.t, rotation, t)) if estimate.ok else [np.nan, np.nan]
-        row += [*position_rotation_rms(corner_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast)),
-                *position_rotation_rms(dense_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast))]
+        row += bound_rms(gauge, rotation, t, with_dense=True)
         out.append(row)
     return np.array(out)
 
