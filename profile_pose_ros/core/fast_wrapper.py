@@ -205,6 +205,10 @@ def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
     start = time.perf_counter()
     options = options or EstimatorOptions()
     rotation, translation = sample_pose(gauge, np.random.default_rng(0))
-    estimate_fast(render_profile(gauge, rotation, translation), gauge, options)
+    profile = render_profile(gauge, rotation, translation)
+    estimate_fast(profile, gauge, options)
     estimate_fast(np.full((10, 2), np.nan), gauge, options)  # a failure path too
+    from .estimator import estimate_plain
+
+    estimate_plain(profile, gauge, options, COMPILED)  # the kernels of the n = 4 starts and the basin search
     return time.perf_counter() - start
