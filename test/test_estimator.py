@@ -149,3 +149,20 @@ def test_two_equally_good_poses_centimetres_apart_are_rejected_as_ambiguous():
     assert not estimate.ok and "ambiguous" in estimate.reason and "mm apart" in estimate.reason
     both = estimate_pose(points, gauge, max_reprojection_error=1.0, weighting="uniform")  # rule needs chi-square
     assert both.ok and np.linalg.norm(both.t - t) > 0.01  # the rule is what stood between it and a 5 cm error
+
+
+def test_position_sigma_is_the_largest_eigenvalue_s_root():
+    from profile_pose_ros.core.estimator import position_sigma
+
+    rng = np.random.default_rng(4)
+    for scale in (1e-6, 1e-4, 1e-2):
+        for _ in range(300):
+            basis, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+            variances = (scale * 10.0 ** rng.uniform(-3, 0, 3)) ** 2  # stds over three decades
+            if rng.random() < 0.2:
+                variances[1] = variances[0]  # repeated eigenvalues
+            covariance = basis @ np.diag(variances) @ basis.T
+            # a repeated largest eigenvalue puts the cubic's solution at acos(1): ~1e-8 relative, for a gate
+            assert position_sigma(covariance) == pytest.approx(np.sqrt(np.max(variances)), rel=1e-7)
+    assert position_sigma(np.eye(3) * 4e-8) == pytest.approx(2e-4, rel=1e-12)
+    assert np.isnan(position_sigma(np.full((3, 3), np.nan)))

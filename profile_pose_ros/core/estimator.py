@@ -6,6 +6,7 @@ the gauge (reprojection error under a bound, corners inside the gauge's footprin
 """
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from functools import lru_cache
@@ -137,9 +138,9 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
 
 def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> PoseEstimate:
     """The estimate, or a rejection when its position is too poorly determined to trust its covariance."""
-    if not estimate.ok or not np.all(np.isfinite(estimate.covariance[:3, :3])):
+    if not estimate.ok:
         return estimate
-    sigma = position_sigma(estimate.covariance[:3, :3])
+    sigma = position_sigma(estimate.covariance[:3, :3])  # NaN (kept) when the covariance is not finite
     if sigma > options.max_position_sigma:
         return _rejected(estimate, reason_poorly_determined(sigma, options))
     return estimate
@@ -171,8 +172,24 @@ def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, e
 
 
 def position_sigma(position_covariance: np.ndarray) -> float:
-    """Largest standard deviation (m) of a 3x3 position covariance."""
-    return float(np.sqrt(max(np.linalg.eigvalsh(position_covariance)[-1], 0.0)))
+    """Largest standard deviation (m) of a 3x3 position covariance (NaN if it is not finite). Closed form
+    (the trigonometric solution of the characteristic cubic): every estimate needs it, and LAPACK through
+    numpy cost ~10 us a call, a tenth of the compiled estimator."""
+    (a, b, c), (_, d, e), (_, _, f) = position_covariance.tolist()
+    if not all(map(math.isfinite, (a, b, c, d, e, f))):
+        return float("nan")
+    off = b * b + c * c + e * e
+    mean = (a + d + f) / 3.0
+    spread = ((a - mean) ** 2 + (d - mean) ** 2 + (f - mean) ** 2 + 2.0 * off) / 6.0
+    if spread <= 0.0:
+        largest = mean
+    else:
+        p = math.sqrt(spread)
+        a, d, f = (a - mean) / p, (d - mean) / p, (f - mean) / p  # B = (A - mean I) / p; eigenvalues of A:
+        b, c, e = b / p, c / p, e / p  #                              mean + p * 2 cos(angle)
+        half_det = (a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c)) / 2.0
+        largest = mean + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, half_det))) / 3.0)
+    return math.sqrt(max(largest, 0.0))
 
 
 def needs_search(result: Refinement, cost: float, n_corners: int, weighted: bool, options: EstimatorOptions) -> bool:
