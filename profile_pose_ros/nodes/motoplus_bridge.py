@@ -217,6 +217,7 @@ class MotoPlusBridgeNode(Node):
             level, message = WARN, f"{c.state}: not moving the robot ({c.last_error or 'not armed'})"
         values = {"state": c.state, "states": c.counters.states, "corrections": c.counters.corrections,
                   "zero_corrections": c.counters.zero_corrections, "late_answers": c.counters.late_answers,
+                  "lost_increments": c.counters.lost_increments,
                   "clamped": c.counters.clamped,
                   "offset_limited": c.counters.offset_limited, "faults": c.counters.faults,
                   "connections": c.counters.connections, "safety_checked": monitor.checked,

@@ -332,7 +332,8 @@ def loop_health(diagnostics: dict) -> str:
     return (f"loop: {value('motoplus_bridge', 'corrections')} corrections sent, "
             f"{value('motoplus_bridge', 'zero_corrections')} of them zero (no fresh correction; "
             f"{value('motoplus_bridge', 'late_answers')} answers too late to use); the controller replaced "
-            f"{value('sim_cell', 'robot_corrections_replaced')} not yet applied by a newer one")
+            f"{value('sim_cell', 'robot_corrections_replaced')} not yet applied by a newer one (the bridge counted "
+            f"{value('motoplus_bridge', 'lost_increments')} moving ones lost from the controller's STATEs)")
 
 
 def main(argv=None) -> int:
