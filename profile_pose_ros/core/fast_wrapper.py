@@ -87,7 +87,7 @@ kernel_name = ""
 
 
 def _loaded():
-    """The compiled module in use (estimate and refine_pose): loaded (and, the first time on a machine,
+    """The compiled module in use (estimate, detect, refine_pose): loaded (and, the first time on a machine,
     built) on first need."""
     global _kernels, kernel_name
     if _kernels is None:
