@@ -25,8 +25,8 @@ from ..core import estimate_pose, pose_error, render_profile, sample_pose
 from ..core.crlb import corner_crlb, dense_crlb, position_rotation_rms
 from ..core.estimator import is_wrong_minimum, pose_nees
 from ..core.fast_wrapper import COMPILED
-from ..core.render_fast import trace_depth_fast
 from ..core.gauge_design import random_gauge
+from ..core.render_fast import trace_depth_fast
 from ..core.solver import paper_closed_form
 from .report import run_dir, summary, table, write_json
 
