@@ -15,8 +15,8 @@ from . import fast_codes as fast
 from .corners import (REASON_CORNERS_NOT_INCREASING, ROBUST_PASSES, REASON_X_NOT_INCREASING, CornerOptions,
                       CornerResult, LineFit, reason_corner_count, reason_corner_not_between, reason_steep_segment,
                       reason_too_few_points)
-from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, Stages, position_sigma, reason_outside,
-                        reason_reprojection)
+from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, Stages, estimate_plain, position_sigma,
+                        reason_outside, reason_reprojection)
 from .gauge import Gauge
 from .solver import REASON_CF_DEGENERATE, PoseSolution, Refinement, reason_cf_rank, refine
 
@@ -160,8 +160,6 @@ COMPILED = Stages(detect_corners_compiled, refine_compiled)  # estimate_plain()'
 
 def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
     if gauge.n_ridges == 4:  # several starting poses (solver.four_ridge_candidates): the numpy path
-        from .estimator import estimate_plain
-
         return estimate_plain(points, gauge, options, COMPILED)
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
@@ -187,8 +185,6 @@ def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -
     ok = status == fast.OK
     if options.search and options.refine and (status in (fast.REPROJECTION, fast.OUTSIDE_FOOTPRINT) or (
             ok and position_sigma(cov[:3, :3]) > options.search_min_sigma)):
-        from .estimator import estimate_plain
-
         # poorly determined, or perhaps in a wrong basin: the numpy path, whose basin search decides
         return estimate_plain(points, gauge, options, COMPILED)
     return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
@@ -208,7 +204,5 @@ def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
     profile = render_profile(gauge, rotation, translation)
     estimate_fast(profile, gauge, options)
     estimate_fast(np.full((10, 2), np.nan), gauge, options)  # a failure path too
-    from .estimator import estimate_plain
-
     estimate_plain(profile, gauge, options, COMPILED)  # the kernels of the n = 4 starts and the basin search
     return time.perf_counter() - start
