@@ -317,23 +317,20 @@ def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise
                               f"zeta {e['zeta']:.2f}  Mf {e['Mf_um']:6.2f} um", flush=True)
         floor = noise_floor(exp)
         exp.bridge(arm=False)
-        diagnostics = exp.diagnostics
+        diagnostics, health = exp.diagnostics, loop_health(exp)
     finally:
         graph.close()
-    return {"rate_hz": rate_hz, "runs": runs, "noise_floor_um": floor, "diagnostics": diagnostics}
+    return {"rate_hz": rate_hz, "runs": runs, "noise_floor_um": floor, "diagnostics": diagnostics, "loop": health}
 
 
-def loop_health(diagnostics: dict) -> str:
+def loop_health(exp: Experiment) -> str:
     """How often the loop had nothing fresh to send: over the whole run (open-loop periods send nothing)."""
-    def value(node: str, key: str) -> str:
-        return next((v[key] for name, v in diagnostics.items() if name.split("/")[-1].startswith(node) and key in v),
-                    "?")
-
-    return (f"loop: {value('motoplus_bridge', 'corrections')} corrections sent, "
-            f"{value('motoplus_bridge', 'zero_corrections')} of them zero (no fresh correction; "
-            f"{value('motoplus_bridge', 'late_answers')} answers too late to use); the controller replaced "
-            f"{value('sim_cell', 'robot_corrections_replaced')} not yet applied by a newer one (the bridge counted "
-            f"{value('motoplus_bridge', 'lost_increments')} moving ones lost from the controller's STATEs)")
+    bridge = {key: exp.value("motoplus_bridge", key, "?")
+              for key in ("corrections", "zero_corrections", "late_answers", "lost_increments")}
+    return (f"loop: {bridge['corrections']} corrections sent, {bridge['zero_corrections']} of them zero (no fresh "
+            f"correction; {bridge['late_answers']} answers too late to use); the controller replaced "
+            f"{exp.value('sim_cell', 'robot_corrections_replaced', '?')} not yet applied by a newer one (the bridge "
+            f"counted {bridge['lost_increments']} moving ones lost from the controller's STATEs)")
 
 
 def main(argv=None) -> int:
@@ -376,7 +373,7 @@ def main(argv=None) -> int:
     print("loop noise floor, closed loop holding still (std, um, x y z): estimate "
           + " ".join(f"{v:.1f}" for v in floor["estimate"]) + "; arm (truth) "
           + " ".join(f"{v:.1f}" for v in floor["truth"]))
-    print(loop_health(result["diagnostics"]))
+    print(result["loop"])
     print("improvement >= the paper's on Mp, zeta and Mf, measured by the estimate (the paper's way) and by the "
           "arm's true motion (the simulator's truth, which a real cell does not have):")
     for c, t in zip(checks, truth_checks):
