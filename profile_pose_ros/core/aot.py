@@ -22,7 +22,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 MODULE = "profile_pose_estimator_aot"
-SOURCES = ("fast.py", "fast_codes.py", "solver.py")
+SOURCES = ("fast.py", "fast_codes.py", "fast_profile.py", "solver.py")
 
 
 def cache_root() -> Path:
@@ -87,8 +87,8 @@ def load(build: bool = True, timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile fast.estimate, fast.refine_pose and fast.detect with numba.pycc (in its own process: it loads
-    LLVM)."""
+    """Compile fast.estimate, fast.refine_pose, fast.detect and fast_profile.decode_xz with numba.pycc (in its own
+    process: it loads LLVM)."""
     import warnings
 
     from numba import types
@@ -97,7 +97,7 @@ def build_into(directory: Path) -> None:
         warnings.simplefilter("ignore")
         from numba.pycc import CC
 
-    from . import fast
+    from . import fast, fast_profile
 
     f8 = types.float64
     array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
@@ -130,6 +130,12 @@ def build_into(directory: Path) -> None:
     @compiler.export("detect", detect_signature)
     def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
         return fast.detect(points, n_corners, opt, corners, jac, line_var, info, lines_out)
+
+    table = types.Array(types.float32, 2, "C", readonly=True)
+
+    @compiler.export("decode_xz", types.Tuple((int64, int64))(table, int64, int64, int64, array2))
+    def decode_xz(table, x_col, y_col, z_col, out):
+        return fast_profile.decode_xz(table, x_col, y_col, z_col, out)
 
     compiler.compile()
 

@@ -17,9 +17,7 @@ from .fast_codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT
                          O_FLOOR, O_MARGIN, O_MAXFACE, O_MAXIT, O_MAXOFF, O_MAXREPROJ, O_MINANGLE, O_MINSEG,
                          O_NOISE, O_PASSES, O_REFINE, O_ROBUST, O_SIGFLOOR, O_THR, O_TRIM, O_WEIGHTED, OK,
                          OUTSIDE_FOOTPRINT, REPROJECTION, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS,
-                         WRONG_CORNER_COUNT, X_NOT_INCREASING)
-
-JIT = dict(cache=True, error_model="numpy", nogil=True)
+                         WRONG_CORNER_COUNT, X_NOT_INCREASING, JIT)
 
 # ----------------------------------------------------------------------------- corner detection
 @njit(**JIT)

@@ -18,7 +18,12 @@ REPROJECTION = 12
 OUTSIDE_FOOTPRINT = 13
 SINGULAR = 14
 
+# decode_xz statuses (its count says how many points)
+DECODED, OFF_PLANE, INFINITE, ALL_INVALID = 0, 1, 2, 3
+
 # option vector layout
 O_EPS, O_TRIM, O_MINSEG, O_MINANGLE, O_MAXFACE, O_MAXOFF, O_ROBUST, O_THR, O_FLOOR, O_NOISE, O_SIGFLOOR, \
     O_WEIGHTED, O_REFINE, O_MAXIT, O_MAXREPROJ, O_MARGIN, O_PASSES = range(17)
 N_OPTIONS = 17
+
+JIT = dict(cache=True, error_model="numpy", nogil=True)  # numba.njit options of every compiled function

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import time
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -87,7 +88,7 @@ kernel_name = ""
 
 
 def _loaded():
-    """The compiled module in use (estimate, detect, refine_pose): loaded (and, the first time on a machine,
+    """The compiled functions in use (estimate, detect, refine_pose, decode_xz): loaded (and, the first time on a machine,
     built) on first need."""
     global _kernels, kernel_name
     if _kernels is None:
@@ -99,14 +100,22 @@ def _loaded():
             raise RuntimeError("PROFILE_POSE_KERNEL=aot but the prebuilt estimator could not be built here")
         else:
             from . import fast as jit
+            from .fast_profile import decode_xz
 
-            _kernels, kernel_name = jit, "numba jit"
+            _kernels = SimpleNamespace(estimate=jit.estimate, detect=jit.detect, refine_pose=jit.refine_pose,
+                                       decode_xz=decode_xz)
+            kernel_name = "numba jit"
     return _kernels
 
 
 def kernel():
     """The compiled estimate() in use."""
     return _loaded().estimate
+
+
+def decode_xz(table: np.ndarray, x_col: int, y_col: int, z_col: int, out: np.ndarray) -> tuple[int, int]:
+    """fast_profile.decode_xz through the kernel in use (profile_cloud.decode_profile calls it)."""
+    return _loaded().decode_xz(table, x_col, y_col, z_col, out)
 
 
 def detect_corners_compiled(points: np.ndarray, n_corners: int, options: CornerOptions = CornerOptions()

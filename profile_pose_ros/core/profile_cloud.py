@@ -10,6 +10,9 @@ from typing import Sequence
 
 import numpy as np
 
+from .fast_codes import ALL_INVALID, DECODED, INFINITE, OFF_PLANE
+from .fast_wrapper import decode_xz
+
 FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
 POINT_STEP = 16  # x, y, z, intensity as float32
 _DATATYPE_NAMES = {1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32", 7: "FLOAT32", 8: "FLOAT64"}
@@ -28,8 +31,10 @@ class Field:
 
 
 def decode_profile(*, width: int, height: int, fields: Sequence[Field], is_bigendian: bool, point_step: int,
-                   row_step: int, data: bytes | bytearray | memoryview | Sequence[int]) -> np.ndarray:
-    """(N, 2) float64 [x, z]; NaN rows are invalid points. Raises ProfileFormatError."""
+                   row_step: int, data: bytes | bytearray | memoryview | Sequence[int], compiled: bool = True
+                   ) -> np.ndarray:
+    """(N, 2) float64 [x, z]; NaN rows are invalid points. Raises ProfileFormatError. compiled=False takes the
+    numpy reference path (identical results)."""
     if height != 1:
         raise ProfileFormatError(f"height is {height}; a profile is one row (height = 1)")
     if width <= 0:
@@ -68,10 +73,29 @@ def decode_profile(*, width: int, height: int, fields: Sequence[Field], is_bigen
             raise ProfileFormatError(f"data is not a byte buffer ({exc})") from None
 
     aligned = point_step % 4 == 0 and all(by_name[k].offset % 4 == 0 for k in ("x", "y", "z") if k in by_name)
+    if aligned and compiled:  # every profile publisher we know: one compiled pass over the float32 table
+        table = raw.view("<f4").reshape(width, point_step // 4)
+        points = np.empty((width, 2))
+        status, count = decode_xz(table, *(by_name[k].offset // 4 if k in by_name else -1 for k in "xyz"), points)
+        if status != DECODED:
+            raise ProfileFormatError(_REASONS[status](count))
+        return points
+    return _decode_numpy(raw, by_name, width, point_step, aligned)
+
+
+_REASONS = {
+    OFF_PLANE: lambda count: f"{count} points have y != 0; a profile lies in the laser plane (y = 0)",
+    INFINITE: lambda count: f"{count} points are +-inf; invalid points must be NaN",
+    ALL_INVALID: lambda count: f"all {count} points are invalid (NaN)",
+}
+
+
+def _decode_numpy(raw: np.ndarray, by_name: dict, width: int, point_step: int, aligned: bool) -> np.ndarray:
+    """The reference for the compiled pass, and the path for layouts it does not take (unaligned fields)."""
     table = raw.view("<f4").reshape(width, point_step // 4) if aligned else None
 
     def column(name: str) -> np.ndarray:
-        if table is not None:  # every profile publisher we know: a strided view, no copy
+        if table is not None:  # a strided view, no copy
             return table[:, by_name[name].offset // 4]
         dtype = np.dtype({"names": [name], "formats": ["<f4"], "offsets": [by_name[name].offset],
                           "itemsize": point_step})
@@ -82,17 +106,16 @@ def decode_profile(*, width: int, height: int, fields: Sequence[Field], is_bigen
         y = column("y")
         off_plane = np.isfinite(y) & (y != 0.0)
         if off_plane.any():
-            raise ProfileFormatError(f"{int(off_plane.sum())} points have y != 0; a profile lies in the "
-                                     f"laser plane (y = 0)")
+            raise ProfileFormatError(_REASONS[OFF_PLANE](int(off_plane.sum())))
     infinite = np.isinf(x) | np.isinf(z)
     if infinite.any():
-        raise ProfileFormatError(f"{int(infinite.sum())} points are +-inf; invalid points must be NaN")
+        raise ProfileFormatError(_REASONS[INFINITE](int(infinite.sum())))
     points = np.empty((width, 2))
     with np.errstate(invalid="ignore"):  # signalling NaNs (any bit pattern can arrive) are still NaN
         np.add(x, 0.0 * z, out=points[:, 0])  # a point is invalid if either coordinate is NaN: 0 * NaN = NaN,
         np.add(z, 0.0 * x, out=points[:, 1])  # and no inf is left to make 0 * inf = NaN by accident
     if np.isnan(points[:, 0]).all():
-        raise ProfileFormatError(f"all {width} points are invalid (NaN)")
+        raise ProfileFormatError(_REASONS[ALL_INVALID](width))
     return points
 
 

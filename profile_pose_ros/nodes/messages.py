@@ -88,10 +88,27 @@ def pose_with_covariance(pose: PoseStamped, covariance: np.ndarray) -> PoseWithC
     return msg
 
 
+class PoseMessagePair:
+    """A PoseStamped and a PoseWithCovarianceStamped sharing one header and one Pose. A publisher refills
+    the same pair for every estimate (publishing serializes at once): building two fresh messages cost
+    ~40 us, a tenth of a profile's time at 1 kHz."""
+
+    def __init__(self) -> None:
+        self.pose = PoseStamped()
+        self.with_covariance = pose_with_covariance(self.pose, np.zeros(36))
+
+    def fill(self, rotation: np.ndarray, translation: np.ndarray, covariance: np.ndarray, stamp_sec: int,
+             stamp_nanosec: int, frame_id: str) -> None:
+        self.pose.header.stamp.sec, self.pose.header.stamp.nanosec = stamp_sec, stamp_nanosec
+        self.pose.header.frame_id = frame_id
+        fill_pose(self.pose.pose, rotation, translation)
+        self.with_covariance.pose.covariance = np.ascontiguousarray(covariance, dtype=np.float64).reshape(36)
+
+
 def fill_pose(pose, rotation: np.ndarray, translation: np.ndarray) -> None:
-    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in translation)
-    q = quaternion_xyzw(rotation)
-    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = (float(v) for v in q)
+    pose.position.x, pose.position.y, pose.position.z = np.asarray(translation, dtype=float).tolist()
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = \
+        quaternion_xyzw(rotation).tolist()
 
 
 def rotation_translation(pose) -> tuple[np.ndarray, np.ndarray]:

@@ -18,6 +18,7 @@ import yaml
 
 from ..core import motoplus_protocol as mp
 from ..core.gauge import Gauge, GaugeError
+from ..core.profile_cdr import decode_profile_cdr
 from ..core.profile_cloud import Field, ProfileFormatError, decode_profile, encode_profile
 from ..core.profiler_protocol import FrameDecoder, ProfilerProtocolError, encode_frame
 from ..core.trigger_protocol import TriggerLineError, format_trigger, parse_line
@@ -101,6 +102,19 @@ def _point_cloud(data: bytes) -> None:
                    point_step=point_step, row_step=width * point_step + (flags >> 4) % 2, data=payload)
 
 
+def _serialized_clouds(points: np.ndarray) -> list[bytes]:
+    """Profiles as the estimator node takes them from the topic: rclpy's serialization, with and without
+    intensity, two frame names."""
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from ..nodes.messages import cloud_from_points
+
+    stamp = PointCloud2().header.stamp
+    return [serialize_message(cloud_from_points(points, stamp, frame, intensity))
+            for frame, intensity in (("profiler", None), ("cell_2/profiler", np.ones(len(points))))]
+
+
 def _gauge_yaml(data: bytes) -> None:
     try:
         document = yaml.safe_load(data.decode("utf-8"))
@@ -129,6 +143,7 @@ def targets() -> list[Target]:
     lines = [format_trigger(12, 4000000000), b"PONG 77\n", b"OK ARM\n", b"READY trigger_mcu 1\n", b"E what\n"]
     points = np.column_stack([np.linspace(-0.1, 0.1, 20), rng.uniform(0.3, 0.5, 20)])
     cloud = [bytes([12, 1, 0, 7, 7, 0]) + encode_profile(points)[2]]
+    serialized = _serialized_clouds(points)
     gauge = [config_path(DEFAULT_GAUGE).read_bytes()]
     params = [np.array([4.0] * 6 + [0.2] * 6 + [0.05] * 6).tobytes()]
     return [
@@ -136,6 +151,7 @@ def targets() -> list[Target]:
         Target("MotoPlus frames", motoplus, _motoplus, (mp.MotoPlusProtocolError,)),
         Target("trigger-MCU lines", lines, _trigger_lines, (TriggerLineError,)),
         Target("PointCloud2 profiles", cloud, _point_cloud, (ProfileFormatError,)),
+        Target("serialized PointCloud2 profiles", serialized, decode_profile_cdr, (ProfileFormatError,)),
         Target("gauge files", gauge, _gauge_yaml, (GaugeError,)),
         Target("parameter updates", params, _parameter_updates, (ValueError,)),
     ]

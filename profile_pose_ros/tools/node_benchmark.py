@@ -158,7 +158,8 @@ class LoadRun(NodeProcess):
                 "cpu_share": cpu / wall, "peak_rss_mib": max(s["VmHWM"] for s in self.samples) / 1024,
                 "rss_first_mib": rss[0], "rss_last_mib": rss[-1], "rss_growth_mib": rss[-1] - rss[0],
                 "rss_per_second_mib": rss, "node_reported_lost": lost,
-                "node_callback_ms": float(np.median(callback_ms)) if callback_ms else float("nan")}
+                "node_callback_ms": float(np.median(callback_ms)) if callback_ms else float("nan"),
+                "node_callback_cpu_ms": float(np.median(reported("mean_processing_cpu_ms") or [float("nan")]))}
 
 
 def main(argv=None) -> int:

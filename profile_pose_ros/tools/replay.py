@@ -64,7 +64,6 @@ TRUTH_TOLERANCE_NS = 500_000  # a pose's stamp (the estimated trigger time) with
 def replay(bag: str | Path, values: dict, profile_topic: str | None = None, output: str | None = None) -> dict:
     from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
     from rclpy.serialization import deserialize_message, serialize_message
-    from sensor_msgs.msg import PointCloud2
 
     from ..core.fast_wrapper import warm_up
     from ..core.gauge import Gauge
@@ -94,8 +93,7 @@ def replay(bag: str | Path, values: dict, profile_topic: str | None = None, outp
     for topic, _type, received_ns, data in read_messages(bag, wanted):
         if topic == profile_topic:
             start = time.perf_counter()
-            msg = deserialize_message(data, PointCloud2)
-            result = poses_from_profile(msg, gauge, options, values["profiler_frame"], values["gauge_frame"])
+            result = poses_from_profile(data, gauge, options, values["profiler_frame"], values["gauge_frame"])
             busy += time.perf_counter() - start
             if result.reason:
                 key = result.reason.split(":")[0][:60]
@@ -103,7 +101,7 @@ def replay(bag: str | Path, values: dict, profile_topic: str | None = None, outp
                 continue
             pose_bytes = canonical(serialize_message(result.pose), POSE_TYPE)
             covariance_bytes = canonical(serialize_message(result.pose_with_covariance), COVARIANCE_TYPE)
-            replayed[stamp_ns(msg.header.stamp)] = (pose_bytes, covariance_bytes, result.pose.pose)
+            replayed[result.stamp_ns] = (pose_bytes, covariance_bytes, result.pose.pose)
             if writer:
                 writer.write(pose_topic, received_ns, pose_bytes)
                 writer.write(covariance_topic, received_ns, covariance_bytes)

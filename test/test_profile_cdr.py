@@ -1,0 +1,75 @@
+"""A profile read straight from its serialized PointCloud2 (the estimator node's and replay's path): the
+same stamp, frame and points as rclpy's own deserialization, and every malformed message rejected with
+ProfileFormatError and nothing else."""
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import PointCloud2, PointField
+
+from profile_pose_ros.core.profile_cdr import decode_profile_cdr
+from profile_pose_ros.core.profile_cloud import ProfileFormatError
+from profile_pose_ros.nodes.messages import cloud_from_points, points_from_cloud
+
+
+def cloud(frame_id="profiler", intensity=False, n=50):
+    x = np.linspace(-0.05, 0.05, n)
+    points = np.column_stack([x, 0.4 + 0.1 * np.abs(x)])
+    points[3] = np.nan
+    msg = cloud_from_points(points, PointCloud2().header.stamp, frame_id, np.ones(n) if intensity else None)
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 1_796_000_123, 456_789_012
+    return msg
+
+
+@pytest.mark.parametrize("frame_id", ["profiler", "", "cell_2/profiler_äß"])
+@pytest.mark.parametrize("intensity", [False, True])
+def test_reads_what_rclpy_serialized(frame_id, intensity):
+    msg = cloud(frame_id, intensity)
+    profile = decode_profile_cdr(serialize_message(msg))
+    assert (profile.stamp_sec, profile.stamp_nanosec, profile.frame_id) == (1_796_000_123, 456_789_012, frame_id)
+    assert profile.stamp_ns == 1_796_000_123_456_789_012
+    assert profile.points.tobytes() == points_from_cloud(msg).tobytes()
+
+
+def test_field_layout_is_read_not_assumed():
+    """z before x, an extra field in front: the offsets come from the message."""
+    msg = cloud()
+    table = np.frombuffer(bytes(msg.data), dtype="<f4").reshape(-1, 3)
+    swapped = np.column_stack([np.full(len(table), 7.0, dtype="<f4"), table[:, 2], table[:, 0]])
+    msg.fields = [PointField(name="pad", offset=0, datatype=7, count=1),
+                  PointField(name="z", offset=4, datatype=7, count=1), PointField(name="x", offset=8, datatype=7, count=1)]
+    msg.data = swapped.tobytes()
+    assert decode_profile_cdr(serialize_message(msg)).points.tobytes() == points_from_cloud(cloud()).tobytes()
+
+
+def test_every_truncation_and_trailing_garbage_is_rejected():
+    data = serialize_message(cloud(n=8))
+    for end in range(len(data) - 4):  # up to 3 bytes of alignment padding may end a message
+        with pytest.raises(ProfileFormatError):
+            decode_profile_cdr(data[:end])
+    with pytest.raises(ProfileFormatError, match="after the end"):
+        decode_profile_cdr(data + b"\x00" * 8)
+    with pytest.raises(ProfileFormatError, match="little-endian CDR"):
+        decode_profile_cdr(b"\x00\x00" + data[2:])
+
+
+def test_profile_checks_still_apply():
+    msg = cloud()
+    msg.height = 2
+    with pytest.raises(ProfileFormatError, match="height is 2"):
+        decode_profile_cdr(serialize_message(msg))
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.data())
+def test_mutated_messages_raise_only_profile_format_error(data):
+    original = bytearray(serialize_message(cloud(n=6)))
+    for _ in range(data.draw(st.integers(1, 4))):
+        i = data.draw(st.integers(0, len(original) - 1))
+        original[i] = data.draw(st.sampled_from([0, 1, 0x7F, 0x80, 0xFF, data.draw(st.integers(0, 255))]))
+    try:
+        profile = decode_profile_cdr(bytes(original))
+    except ProfileFormatError:
+        return
+    assert profile.points.ndim == 2 and profile.points.shape[1] == 2
