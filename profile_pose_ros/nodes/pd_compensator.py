@@ -48,7 +48,8 @@ PARAMETERS = [
           1e-7, 1e-2),
     Param("max_pose_age", 0.05, "A pose older than this (by its stamp) is stale: zero correction (s).", 0.001, 1.0),
     Param("base_frame", "base", "frame_id of the corrections."),
-    Param("watchdog_rate", 100.0, "How often staleness is checked and a zero correction sent (Hz).", 1.0, 1000.0,
+    Param("watchdog_rate", 100.0, "While the pose is stale (or no reference), how often a zero correction is sent "
+          "(Hz). Staleness itself is noticed when the newest pose turns max_pose_age old.", 1.0, 1000.0,
           read_only=True),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
 ]
@@ -85,9 +86,8 @@ class PdCompensatorNode(Node):
         # waited behind its per-wake-up bookkeeping and the 100 Hz watchdog, about a millisecond per hop here.
         pose_sub = self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose, 10,
                                             callback_group=ServedDirectly())
-        self.fast_input = FastInput(pose_sub, self.context, self._on_pose)
+        self.fast_input = FastInput(pose_sub, self.context, self._on_pose, tick=self._watchdog)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
-        self.create_timer(1.0 / v["watchdog_rate"], self._watchdog)
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
 
     def pump(self, timeout_sec: float = 0.0) -> int:
@@ -139,13 +139,19 @@ class PdCompensatorNode(Node):
     def _publish(self, velocity: np.ndarray, stamp) -> None:
         self.correction_pub.publish(twist_stamped(velocity, stamp, self.values["base_frame"]))
 
-    def _watchdog(self) -> None:
-        if self.reference is None or time.time() - self.last_pose_stamp > self.values["max_pose_age"]:
-            self.filter.reset()  # the next fresh pose starts the filter again, not from old motion
-            if self.shaper is not None:
-                self.shaper.reset()  # nor does old shaped motion come back after a stale spell
-            self._publish(np.zeros(6), self.get_clock().now().to_msg())
-            self.stale_zeros += 1
+    def _watchdog(self) -> float:
+        """Zero correction while the pose is stale or there is no reference, repeated at watchdog_rate;
+        returns when to look again: while poses keep coming, only when the newest would turn stale."""
+        now = time.time()
+        stale_at = self.last_pose_stamp + self.values["max_pose_age"]
+        if self.reference is not None and now <= stale_at:
+            return stale_at + 1e-4
+        self.filter.reset()  # the next fresh pose starts the filter again, not from old motion
+        if self.shaper is not None:
+            self.shaper.reset()  # nor does old shaped motion come back after a stale spell
+        self._publish(np.zeros(6), self.get_clock().now().to_msg())
+        self.stale_zeros += 1
+        return now + 1.0 / self.values["watchdog_rate"]
 
     def _publish_diagnostics(self) -> None:
         age = time.time() - self.last_pose_stamp if self.last_pose_stamp else float("inf")
