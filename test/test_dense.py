@@ -42,3 +42,31 @@ def test_dense_beats_corners_and_approaches_its_bound(gauge, spikes):
 def test_refine_model_is_validated():
     with pytest.raises(ValueError, match="refine_model"):
         estimate_pose(np.zeros((10, 2)), None, refine_model="magic")
+
+
+def test_compiled_dense_refinement_is_the_numpy_one(gauge, rng):
+    """The node's compiled dense refinement against dense.py: same points kept, same minimiser (the steps
+    are solved by Cholesky there, by SVD least squares here)."""
+    from profile_pose_ros.core.dense import refine_dense
+    from profile_pose_ros.core.fast_wrapper import refine_dense_compiled
+    from profile_pose_ros.core.rotation import rotation_angle
+
+    for _ in range(15):
+        rotation, translation = sample_pose(gauge, rng)
+        points = render_profile(gauge, rotation, translation, noise_std=5e-6, rng=rng)
+        start = estimate_pose(points, gauge)
+        assert start.ok
+        for noise_std in (0.0, 5e-6):
+            plain = refine_dense(gauge, points, start.R, start.t, noise_std)
+            compiled = refine_dense_compiled(gauge, points, start.R, start.t, noise_std)
+            assert compiled.points_used == plain.points_used
+            assert np.abs(compiled.translation - plain.translation).max() < 1e-9
+            assert rotation_angle(compiled.rotation, plain.rotation) < 1e-9
+            assert compiled.sigma == pytest.approx(plain.sigma, rel=1e-6)
+            assert np.allclose(compiled.covariance_local, plain.covariance_local, rtol=1e-6, atol=0)
+        fast = estimate_pose(points, gauge, refine_model="dense")
+        reference = estimate_pose(points, gauge, refine_model="dense", backend="numpy")
+        assert fast.ok and reference.ok
+        assert np.abs(fast.t - reference.t).max() < 1e-9
+    with pytest.raises(np.linalg.LinAlgError):  # nothing usable: no pose, as dense.py
+        refine_dense_compiled(gauge, np.full((50, 2), np.nan), start.R, start.t)

@@ -22,7 +22,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 MODULE = "profile_pose_estimator_aot"
-SOURCES = ("fast.py", "fast_codes.py", "fast_profile.py", "solver.py")
+SOURCES = ("fast.py", "fast_codes.py", "fast_dense.py", "fast_profile.py", "solver.py")
 
 
 def cache_root() -> Path:
@@ -87,8 +87,8 @@ def load(build: bool = True, timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile fast.estimate, fast.refine_pose, fast.detect and fast_profile.decode_xz with numba.pycc (in its own
-    process: it loads LLVM)."""
+    """Compile fast.estimate, fast.refine_pose, fast.detect, fast_profile.decode_xz and fast_dense.refine_dense
+    with numba.pycc (in its own process: it loads LLVM)."""
     import warnings
 
     from numba import types
@@ -97,7 +97,7 @@ def build_into(directory: Path) -> None:
         warnings.simplefilter("ignore")
         from numba.pycc import CC
 
-    from . import fast, fast_profile
+    from . import fast, fast_dense, fast_profile
 
     f8 = types.float64
     array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
@@ -136,6 +136,15 @@ def build_into(directory: Path) -> None:
     @compiler.export("decode_xz", types.Tuple((int64, int64))(table, int64, int64, int64, array2))
     def decode_xz(table, x_col, y_col, z_col, out):
         return fast_profile.decode_xz(table, x_col, y_col, z_col, out)
+
+    dense_signature = types.Tuple((int64, int64, f8))(
+        array2, array2, array1, array1, array1, f8, f8, array2, array1, f8, f8, f8, f8, int64, array2, array1, array2)
+
+    @compiler.export("refine_dense", dense_signature)
+    def refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, noise_std, margin, threshold,
+                     floor, iterations, rot_out, t_out, cov_out):
+        return fast_dense.refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, noise_std,
+                                       margin, threshold, floor, iterations, rot_out, t_out, cov_out)
 
     compiler.compile()
 

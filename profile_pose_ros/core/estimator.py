@@ -132,7 +132,7 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
     else:
         raise ValueError(f"backend must be 'fast' or 'numpy', got {backend!r}")
     if estimate.ok and options.refine and options.refine_model == "dense":
-        estimate = _refine_dense(points, gauge, options, estimate)
+        estimate = _refine_dense(points, gauge, options, estimate, compiled=backend == "fast")
     return _checked_precision(estimate, options)
 
 
@@ -152,9 +152,13 @@ def _rejected(estimate: PoseEstimate, reason: str, **changes) -> PoseEstimate:
                    covariance=np.full((6, 6), np.nan), **changes)
 
 
-def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate) -> PoseEstimate:
+def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate,
+                  compiled: bool) -> PoseEstimate:
     """Replace the corner solution by the dense one (same checks), keeping the corner results alongside."""
-    from .dense import refine_dense
+    if compiled:
+        from .fast_wrapper import refine_dense_compiled as refine_dense
+    else:
+        from .dense import refine_dense
 
     start = time.perf_counter()
     try:

@@ -18,6 +18,7 @@ from .corners import (REASON_CORNERS_NOT_INCREASING, ROBUST_PASSES, REASON_X_NOT
                       reason_too_few_points)
 from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, Stages, estimate_plain, position_sigma,
                         reason_outside, reason_reprojection)
+from .dense import DenseOptions, DenseResult
 from .gauge import Gauge
 from .solver import REASON_CF_DEGENERATE, PoseSolution, Refinement, reason_cf_rank, refine
 
@@ -88,7 +89,7 @@ kernel_name = ""
 
 
 def _loaded():
-    """The compiled functions in use (estimate, detect, refine_pose, decode_xz): loaded (and, the first time on a machine,
+    """The compiled functions in use (estimate, detect, refine_pose, decode_xz, refine_dense): loaded (and, the first time on a machine,
     built) on first need."""
     global _kernels, kernel_name
     if _kernels is None:
@@ -100,10 +101,11 @@ def _loaded():
             raise RuntimeError("PROFILE_POSE_KERNEL=aot but the prebuilt estimator could not be built here")
         else:
             from . import fast as jit
+            from .fast_dense import refine_dense as dense
             from .fast_profile import decode_xz
 
             _kernels = SimpleNamespace(estimate=jit.estimate, detect=jit.detect, refine_pose=jit.refine_pose,
-                                       decode_xz=decode_xz)
+                                       decode_xz=decode_xz, refine_dense=dense)
             kernel_name = "numba jit"
     return _kernels
 
@@ -162,6 +164,30 @@ def refine_compiled(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corn
     if status != fast.OK:
         raise np.linalg.LinAlgError("Singular matrix")
     return Refinement(PoseSolution(rotation, translation, residuals.reshape(-1, 2)), covariance, int(iterations))
+
+
+def refine_dense_compiled(gauge: Gauge, points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                          noise_std: float = 0.0, options: DenseOptions = DenseOptions()) -> DenseResult:
+    """dense.refine_dense() through the compiled kernel (same steps, solved by Cholesky; within 1e-9)."""
+    normals, offsets, ridge_q, ridge_u = _dense_gauge(gauge)
+    rot_out, t_out, cov_out = np.empty((3, 3)), np.empty(3), np.empty((6, 6))
+    status, used, sigma = _loaded().refine_dense(
+        np.ascontiguousarray(points, dtype=np.float64), normals, offsets, ridge_q, ridge_u, gauge.width, gauge.length,
+        np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64), float(noise_std),
+        options.ridge_margin, options.outlier_threshold, options.min_outlier_floor, options.iterations, rot_out, t_out,
+        cov_out)
+    if status != fast.OK:
+        raise np.linalg.LinAlgError("Singular matrix")
+    return DenseResult(rot_out, t_out, cov_out, int(used), float(sigma))
+
+
+def _dense_gauge(gauge: Gauge) -> tuple[np.ndarray, ...]:
+    """The gauge's faces and ridge lines as the dense kernel takes them, once per gauge."""
+    cached = gauge.__dict__.get("_dense_arrays")
+    if cached is None:
+        cached = tuple(np.array(a, dtype=np.float64) for a in (gauge.normals, gauge.offsets, gauge.q[:, 0], gauge.u))
+        object.__setattr__(gauge, "_dense_arrays", cached)
+    return cached
 
 
 COMPILED = Stages(detect_corners_compiled, refine_compiled)  # estimate_plain()'s stages on the compiled kernels
