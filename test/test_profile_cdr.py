@@ -37,8 +37,7 @@ def test_field_layout_is_read_not_assumed():
     msg = cloud()
     table = np.frombuffer(bytes(msg.data), dtype="<f4").reshape(-1, 3)
     swapped = np.column_stack([np.full(len(table), 7.0, dtype="<f4"), table[:, 2], table[:, 0]])
-    msg.fields = [PointField(name="pad", offset=0, datatype=7, count=1),
-                  PointField(name="z", offset=4, datatype=7, count=1), PointField(name="x", offset=8, datatype=7, count=1)]
+    msg.fields = [PointField(name=name, offset=4 * k, datatype=7, count=1) for k, name in enumerate(["pad", "z", "x"])]
     msg.data = swapped.tobytes()
     assert decode_profile_cdr(serialize_message(msg)).points.tobytes() == points_from_cloud(cloud()).tobytes()
 

@@ -89,8 +89,8 @@ kernel_name = ""
 
 
 def _loaded():
-    """The compiled functions in use (estimate, detect, refine_pose, decode_xz, refine_dense): loaded (and, the first time on a machine,
-    built) on first need."""
+    """The compiled functions in use (estimate, detect, refine_pose, decode_xz, refine_dense): loaded (and,
+    the first time on a machine, built) on first need."""
     global _kernels, kernel_name
     if _kernels is None:
         choice = os.environ.get("PROFILE_POSE_KERNEL", "auto")

@@ -208,8 +208,6 @@ class PoseEstimatorNode(Node):
             self.window["busy"] += time.perf_counter() - start
             self.window["cpu"] += time.thread_time() - cpu_start
 
-
-
     def _estimate_and_publish(self, serialized: bytes) -> str:
         result = poses_from_profile(serialized, self.gauge, self.options, self.values["profiler_frame"],
                                     self.values["gauge_frame"], self.outgoing)
