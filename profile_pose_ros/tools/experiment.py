@@ -260,13 +260,15 @@ def plot(runs: list[dict], out, axes: list[str]) -> list[str]:
     paths = []
     fig, panels = plt.subplots(1, len(axes), figsize=(4 * len(axes), 3.2), squeeze=False)
     for panel, axis in zip(panels[0], axes):
+        size = min((r["size_mm"] for r in runs if r["axis"] == axis), default=1.0)  # 1 mm unless not run
         for mode, style in (("open", "C3"), ("closed", "C0")):
-            r = next((r for r in runs if r["axis"] == axis and r["mode"] == mode and r["size_mm"] == 1.0), None)
+            r = next((r for r in runs if r["axis"] == axis and r["mode"] == mode and r["size_mm"] == size), None)
             if r:
                 panel.plot(r["estimate"]["t"], np.array(r["estimate"]["y"]) * 1e3, style,
                            label=f"{'OL' if mode == 'open' else 'CL'}")
-        panel.set(title=f"{axis}, 1 mm step", xlabel="time (s)", ylabel="position (mm)")
-        panel.legend()
+        panel.set(title=f"{axis}, {size:g} mm step", xlabel="time (s)", ylabel="position (mm)")
+        if panel.get_legend_handles_labels()[0]:
+            panel.legend()
     paths.append(_save(fig, out / "fig6_open_vs_closed.png"))
 
     open_runs = [r for r in runs if r["mode"] == "open" and r["size_mm"] == 1.0]
