@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -18,6 +19,7 @@ from ..bags import BagError, BagWriter
 from ..bags.writer import COMPRESSIONS, STORAGES
 from .bag_common import message_class, subscription_qos, to_bag_qos
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
+from .fast_input import FastInput, ServedDirectly, spin
 from .parameters import Param, declare_all
 from .run import run_node
 
@@ -61,6 +63,10 @@ class BagRecorderNode(Node):
         self.flushed = 0  # messages on disk as of the last flush: what a kill cannot take
         self.last_error = ""
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        # Messages are taken straight from their subscriptions (fast_input.py): through the executor, which
+        # rebuilds its wait set over every entity for each message, that was half the recorder's CPU.
+        self.served_here = ServedDirectly()
+        self.fast_input = FastInput(None, self.context)
         self.create_timer(v["discovery_period"], self._discover)
         self.create_timer(v["flush_period"], self._flush)
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
@@ -87,8 +93,11 @@ class BagRecorderNode(Node):
                 self._refuse(topic, str(exc))
                 continue
             qos = subscription_qos([p.qos_profile for p in publishers], self.values["queue_depth"])
-            self.subscriptions_by_topic[topic] = self.create_subscription(
-                msg_class, topic, lambda data, topic=topic: self._on_message(topic, data), qos, raw=True)
+            on_message = partial(self._on_message, topic)
+            subscription = self.create_subscription(msg_class, topic, on_message, qos, raw=True,
+                                                    callback_group=self.served_here)
+            self.subscriptions_by_topic[topic] = subscription
+            self.fast_input.add(subscription, on_message)
             self.get_logger().info(f"recording {topic} ({types[0]})")
 
     def _refuse(self, topic: str, reason: str) -> None:
@@ -125,8 +134,12 @@ class BagRecorderNode(Node):
         self.diagnostics_pub.publish(diagnostic_array(self, "recording",
                                                       str(Path(self.writer.path).name), level, message, values))
 
+    def pump(self, timeout_sec: float = 0.0) -> int:
+        """Write the messages queued (see fast_input.py); spin() or a test harness calls this."""
+        return self.fast_input.pump(timeout_sec)
+
     def drain(self) -> int:
-        """Write what the subscriptions still hold (taken but not yet handled by the executor)."""
+        """Write what the subscriptions still hold (not yet taken)."""
         drained = 0
         for topic, subscription in self.subscriptions_by_topic.items():
             with subscription.handle:
@@ -144,7 +157,8 @@ class BagRecorderNode(Node):
 
 
 def main(args=None) -> int:
-    return run_node(BagRecorderNode, NODE_NAME, args, startup_errors=(BagError, ValueError))
+    return run_node(BagRecorderNode, NODE_NAME, args, startup_errors=(BagError, ValueError),
+                    spin=lambda executor, node, stop: spin(executor, node.fast_input, stop))
 
 
 if __name__ == "__main__":

@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import ExitStack
 from typing import Callable
 
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.callback_groups import CallbackGroup
+from rclpy.executors import ConditionReachedException, ShutdownException, TimeoutException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.subscription import Subscription
 
@@ -37,46 +39,88 @@ class ServedDirectly(CallbackGroup):
 
 
 class FastInput:
-    def __init__(self, subscription: Subscription, context, callback: Callable, guard=None,
+    def __init__(self, subscription: Subscription | None, context, callback: Callable | None = None, guard=None,
                  tick: Callable[[], float] | None = None) -> None:
-        """guard: an optional GuardCondition (in a ServedDirectly group) whose callback runs here when
-        another thread triggers it, as promptly as a message. tick: an optional deadline check (the
-        compensator's watchdog), run here when its time comes; it returns the wall-clock time at which it
-        wants to run next, so a node that stays healthy is not woken for it at a fixed rate."""
-        self.subscription = subscription
-        self.callback = callback
+        """subscription and callback: the input (more with add(); None to start with none). guard: an
+        optional GuardCondition (in a ServedDirectly group) whose callback runs here when another thread
+        triggers it, as promptly as a message. tick: an optional deadline check (the compensator's
+        watchdog), run here when its time comes; it returns the wall-clock time at which it wants to run
+        next, so a node that stays healthy is not woken for it at a fixed rate."""
+        self.context = context
+        self.inputs: list[tuple[Subscription, Callable]] = []
         self.guard = guard
         self.tick = tick
         self.tick_due = time.time() if tick is not None else math.inf
-        self.wait_set = _rclpy.WaitSet(1, 0 if guard is None else 1, 0, 0, 0, 0, context.handle)
+        self.wait_set = None
+        if subscription is not None:
+            self.add(subscription, callback)
+
+    def add(self, subscription: Subscription, callback: Callable) -> None:
+        """One more subscription (in a ServedDirectly group) to serve; each ready one is drained in turn."""
+        self.inputs.append((subscription, callback))
+        self.wait_set = _rclpy.WaitSet(len(self.inputs), 0 if self.guard is None else 1, 0, 0, 0, 0,
+                                       self.context.handle)
 
     def pump(self, timeout_sec: float) -> int:
         """Wait up to timeout_sec (or the tick's deadline) for messages, then handle every one queued and
         the tick if due; returns how many messages."""
-        timeout_sec = min(timeout_sec, self.tick_due - time.time())
-        handle = self.subscription.handle
-        with handle:
-            self.wait_set.clear_entities()
-            self.wait_set.add_subscription(handle)
-            if self.guard is not None:
-                with self.guard.handle:
-                    self.wait_set.add_guard_condition(self.guard.handle)
-            self.wait_set.wait(int(max(timeout_sec, 0.0) * 1e9))
-            message_ready = self.wait_set.is_ready("subscription", 0)
-            guard_ready = self.guard is not None and self.wait_set.is_ready("guard_condition", 0)
-        if guard_ready:
-            self.guard.callback()
+        timeout_sec = max(0.0, min(timeout_sec, self.tick_due - time.time()))
+        if self.wait_set is None:  # nothing to wait on yet (rcl refuses an empty wait set)
+            time.sleep(timeout_sec)
+            ready = []
+        else:
+            ready = self._wait(timeout_sec)
         handled = 0
-        while message_ready:
-            with handle:
-                taken = handle.take_message(self.subscription.msg_type, self.subscription.raw)
-            if taken is None:
-                break
-            self.callback(taken[0])
-            handled += 1
+        for subscription, callback in ready:
+            while True:
+                with subscription.handle:
+                    taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+                if taken is None:
+                    break
+                callback(taken[0])
+                handled += 1
         if time.time() >= self.tick_due:
             self.tick_due = self.tick()
         return handled
+
+    def _wait(self, timeout_sec: float) -> list[tuple[Subscription, Callable]]:
+        """The inputs with messages; runs the guard's callback when it was triggered."""
+        with ExitStack() as held:
+            self.wait_set.clear_entities()
+            for subscription, _ in self.inputs:
+                held.enter_context(subscription.handle)
+                self.wait_set.add_subscription(subscription.handle)
+            if self.guard is not None:
+                held.enter_context(self.guard.handle)
+                self.wait_set.add_guard_condition(self.guard.handle)
+            self.wait_set.wait(int(timeout_sec * 1e9))
+            ready = [item for k, item in enumerate(self.inputs) if self.wait_set.is_ready("subscription", k)]
+            guard_ready = self.guard is not None and self.wait_set.is_ready("guard_condition", 0)
+        if guard_ready:
+            self.guard.callback()
+        return ready
+
+
+def serve_ready(executor) -> int:
+    """Run the executor's callbacks until none is ready, without waiting; returns how many ran. One
+    spin_once() runs one, and one wait hands over one message per subscription: at one pass per
+    housekeeping period a topic the executor serves would fall behind for good."""
+    served = round_served = 0
+    while True:
+        try:
+            handler, _, _ = executor.wait_for_ready_callbacks(timeout_sec=0.0)
+        except ShutdownException:
+            return served
+        except (TimeoutException, ConditionReachedException):
+            if round_served == 0:  # a wait with nothing ready: drained
+                return served
+            round_served = 0
+            continue
+        handler()
+        if handler.exception() is not None:
+            raise handler.exception()
+        served += 1
+        round_served += 1
 
 
 def spin(executor, fast_input: FastInput, stop: StopRequest, housekeeping_period: float = 0.05) -> None:
@@ -88,7 +132,7 @@ def spin(executor, fast_input: FastInput, stop: StopRequest, housekeeping_period
         try:
             fast_input.pump(max(0.0, due - time.monotonic()))
             if time.monotonic() >= due:
-                executor.spin_once(timeout_sec=0.0)
+                serve_ready(executor)
                 due = time.monotonic() + housekeeping_period
         except RCLError:
             if context.ok():

@@ -107,8 +107,8 @@ class Experiment:
         node = graph.node
         self.poses: list[tuple[float, np.ndarray]] = []
         self.truth: list[tuple[float, np.ndarray]] = []
-        node.create_subscription(PoseStamped, "pose", self._on_pose, 1000)
-        node.create_subscription(PoseStamped, "/sim/ground_truth", lambda m: self.truth.append(self._sample(m)), 1000)
+        graph.subscribe_fast(PoseStamped, "pose", self._on_pose)
+        graph.subscribe_fast(PoseStamped, "/sim/ground_truth", lambda m: self.truth.append(self._sample(m)))
         self.reference_pub = node.create_publisher(PoseStamped, "reference_pose", 10)
         self.home: tuple[np.ndarray, np.ndarray] | None = None
         self.last_pose = None  # the newest estimated Pose: home's orientation

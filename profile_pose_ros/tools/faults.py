@@ -44,6 +44,10 @@ _DEFAULTS = {p.name: p.default for p in BRIDGE_PARAMETERS}
 # The controller's apply time and the poses' stamps are read in different processes: on a saturated 2-core
 # machine those readings lag the events by a few ms (a 2 ms allowance gave false stale-motion counts).
 SCHEDULING_SLACK_S = 0.005
+# An episode is judged up to its end time, after waiting this long more: the increment the controller
+# applied just before the end and the correction behind it come from different processes, and judging
+# before the correction had arrived counted a false stale motion.
+IN_FLIGHT_S = 0.2
 # A pose counts as "during the fault" when its stamp is this much inside the fault's window: a profile
 # triggered just before the injection carries the driver's trigger stamp (seen ~5 ms off on a saturated
 # machine), and sim_cell applies a fault to a frame after rendering it, so a profile triggered a few ms
@@ -155,6 +159,7 @@ class FaultRun:
         recovered = self.graph.spin_until(lambda: self._first_motion(resume) is not None, 60.0)
         self.exp.wait(SETTLE_S)
         t_end = time.time()
+        self.exp.wait(IN_FLIGHT_S)  # what was published before t_end reaches this client before it judges
         result = self._evaluate(fault, t_inject, t_clear, t_rearm, resume, t_end, recovered, monitor_before,
                                 fault_before)
         result["session_end"] = session_end if session_end != end_before else "-"
