@@ -150,8 +150,10 @@ def test_the_bridge_process_sends_stop_on_every_shutdown_path(cell, tmp_path, si
     SIGKILL cannot, and the controller, having lost its peer, holds still. A burst of signals (a parent's
     death signal on top of a process manager's) is one clean stop. (A node once deadlocked in its signal
     handler that way; this burst does not reproduce that race, nodes/run.py's StopRequest removes it.)"""
+    # watchdog 5 s: the controller must see the lost peer before its watchdog would end the session; with
+    # 2 s, one full-suite run on this loaded VM saw the watchdog first (the read thread woke too late).
     command = processes.executable("motoplus_bridge", MODULES["motoplus_bridge"]) + ["--ros-args", *ros_params(
-        {"port": cell.controller.port, "arm_on_start": True, "watchdog": 2.0})]
+        {"port": cell.controller.port, "arm_on_start": True, "watchdog": 5.0})]
     process = processes.start(command, unique_domain_id(), tmp_path / "bridge.log")
     try:
         assert wait_for(lambda: len(cell.applied) > 10, 30.0), (tmp_path / "bridge.log").read_text()
