@@ -1,11 +1,12 @@
-"""A high-rate subscription served directly, not through the executor's generic wait.
+"""High-rate subscriptions served directly, not through the executor's generic wait.
 
 rclpy's executor rebuilds a wait set over every timer, service, guard condition and event handler of the
-node on each wake-up; at 1 kHz that costs about as much as estimating the pose. A FastInput waits on the
-one subscription and drains it, so a profile costs one wait and one take; `spin` runs the executor for
+node on each wake-up; at 1 kHz that costs about as much as estimating the pose. A FastInput waits on its
+subscriptions (a node's one high-rate input; every topic the recorder records) and drains each that is
+ready, so a profile costs one wait and one take; `spin` runs the executor for
 everything else (timers, parameter services, QoS events) at a housekeeping period (50 ms: each executor
 pass cost ~0.3 ms of CPU, 3 % of a core at the former 10 ms). A deadline that must be kept (the
-compensator's watchdog) is a `tick` of the FastInput instead. The subscription is in
+compensator's watchdog) is a `tick` of the FastInput instead. The subscriptions are in
 a callback group the executor never schedules, so the two never compete for a message. Single-threaded:
 two threads waiting in rcl at once would contend for the GIL.
 """
