@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from types import SimpleNamespace
+from typing import TypeVar
 
 import numpy as np
 
@@ -22,12 +24,25 @@ from .dense import DenseOptions, DenseResult
 from .gauge import Gauge
 from .solver import REASON_CF_DEGENERATE, PoseSolution, Refinement, reason_cf_rank, refine
 
+T = TypeVar("T")
+
+
+def _cached_on(owner, name: str, build: Callable[[], T]) -> T:
+    """build() once per (immutable) owner, kept beside its fields (a frozen dataclass takes no attribute the
+    usual way): per-options and per-gauge arrays the compiled calls need on every profile."""
+    cached = owner.__dict__.get(name)
+    if cached is None:
+        cached = build()
+        object.__setattr__(owner, name, cached)
+    return cached
+
 
 def option_vector(options: EstimatorOptions) -> np.ndarray:
     """The options packed for the compiled code, computed once per (immutable) options object."""
-    cached = options.__dict__.get("_fast_vector")
-    if cached is not None:
-        return cached
+    return _cached_on(options, "_fast_vector", lambda: _packed_options(options))
+
+
+def _packed_options(options: EstimatorOptions) -> np.ndarray:
     c = options.corners
     v = np.empty(fast.N_OPTIONS)
     v[fast.O_EPS] = c.rdp_epsilon
@@ -48,7 +63,6 @@ def option_vector(options: EstimatorOptions) -> np.ndarray:
     v[fast.O_MARGIN] = options.footprint_margin
     v[fast.O_PASSES] = ROBUST_PASSES
     v.setflags(write=False)
-    object.__setattr__(options, "_fast_vector", v)  # frozen dataclass: cache beside the fields
     return v
 
 
@@ -139,11 +153,7 @@ def detect_corners_compiled(points: np.ndarray, n_corners: int, options: CornerO
 
 def _corner_only(options: CornerOptions) -> EstimatorOptions:
     """Estimator options around corner options, one object per corner options (option_vector caches on it)."""
-    cached = options.__dict__.get("_estimator_options")
-    if cached is None:
-        cached = EstimatorOptions(corners=options)
-        object.__setattr__(options, "_estimator_options", cached)
-    return cached
+    return _cached_on(options, "_estimator_options", lambda: EstimatorOptions(corners=options))
 
 
 def refine_compiled(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covariance: np.ndarray | None,
@@ -183,11 +193,8 @@ def refine_dense_compiled(gauge: Gauge, points: np.ndarray, rotation: np.ndarray
 
 def _dense_gauge(gauge: Gauge) -> tuple[np.ndarray, ...]:
     """The gauge's faces and ridge lines as the dense kernel takes them, once per gauge."""
-    cached = gauge.__dict__.get("_dense_arrays")
-    if cached is None:
-        cached = tuple(np.array(a, dtype=np.float64) for a in (gauge.normals, gauge.offsets, gauge.q[:, 0], gauge.u))
-        object.__setattr__(gauge, "_dense_arrays", cached)
-    return cached
+    return _cached_on(gauge, "_dense_arrays", lambda: tuple(
+        np.array(a, dtype=np.float64) for a in (gauge.normals, gauge.offsets, gauge.q[:, 0], gauge.u)))
 
 
 COMPILED = Stages(detect_corners_compiled, refine_compiled)  # estimate_plain()'s stages on the compiled kernels

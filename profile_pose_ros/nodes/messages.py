@@ -84,8 +84,13 @@ def pose_with_covariance(pose: PoseStamped, covariance: np.ndarray) -> PoseWithC
     msg = PoseWithCovarianceStamped()
     msg.header = pose.header
     msg.pose.pose = pose.pose
-    msg.pose.covariance = np.ascontiguousarray(covariance, dtype=np.float64).reshape(36)
+    msg.pose.covariance = _row_major(covariance)
     return msg
+
+
+def _row_major(covariance: np.ndarray) -> np.ndarray:
+    """A 6x6 covariance as the 36 float64 values geometry_msgs stores."""
+    return np.ascontiguousarray(covariance, dtype=np.float64).reshape(36)
 
 
 class PoseMessagePair:
@@ -102,7 +107,7 @@ class PoseMessagePair:
         self.pose.header.stamp.sec, self.pose.header.stamp.nanosec = stamp_sec, stamp_nanosec
         self.pose.header.frame_id = frame_id
         fill_pose(self.pose.pose, rotation, translation)
-        self.with_covariance.pose.covariance = np.ascontiguousarray(covariance, dtype=np.float64).reshape(36)
+        self.with_covariance.pose.covariance = _row_major(covariance)
 
 
 def fill_pose(pose, rotation: np.ndarray, translation: np.ndarray) -> None:
