@@ -48,7 +48,7 @@ class FastInput:
         watchdog), run here when its time comes; it returns the wall-clock time at which it wants to run
         next, so a node that stays healthy is not woken for it at a fixed rate."""
         self.context = context
-        self.inputs: list[tuple[Subscription, Callable]] = []
+        self.inputs: list[tuple[Subscription, Callable, bool]] = []
         self.guard = guard
         self.tick = tick
         self.tick_due = time.time() if tick is not None else math.inf
@@ -56,9 +56,11 @@ class FastInput:
         if subscription is not None:
             self.add(subscription, callback)
 
-    def add(self, subscription: Subscription, callback: Callable) -> None:
-        """One more subscription (in a ServedDirectly group) to serve; each ready one is drained in turn."""
-        self.inputs.append((subscription, callback))
+    def add(self, subscription: Subscription, callback: Callable, with_info: bool = False) -> None:
+        """One more subscription (in a ServedDirectly group) to serve; each ready one is drained in turn.
+        with_info: callback(message, info), info being rmw's dict (source_timestamp, received_timestamp
+        in ns: when the writer published it and when DDS delivered it here, before this thread woke)."""
+        self.inputs.append((subscription, callback, with_info))
         self.wait_set = _rclpy.WaitSet(len(self.inputs), 0 if self.guard is None else 1, 0, 0, 0, 0,
                                        self.context.handle)
 
@@ -72,23 +74,26 @@ class FastInput:
         else:
             ready = self._wait(timeout_sec)
         handled = 0
-        for subscription, callback in ready:
+        for subscription, callback, with_info in ready:
             while True:
                 with subscription.handle:
                     taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
                 if taken is None:
                     break
-                callback(taken[0])
+                if with_info:
+                    callback(*taken)
+                else:
+                    callback(taken[0])
                 handled += 1
         if time.time() >= self.tick_due:
             self.tick_due = self.tick()
         return handled
 
-    def _wait(self, timeout_sec: float) -> list[tuple[Subscription, Callable]]:
+    def _wait(self, timeout_sec: float) -> list[tuple[Subscription, Callable, bool]]:
         """The inputs with messages; runs the guard's callback when it was triggered."""
         with ExitStack() as held:
             self.wait_set.clear_entities()
-            for subscription, _ in self.inputs:
+            for subscription, *_ in self.inputs:
                 held.enter_context(subscription.handle)
                 self.wait_set.add_subscription(subscription.handle)
             if self.guard is not None:

@@ -28,12 +28,15 @@ class NodeProcess:
         self.executor.add_node(self.node)
         self.fast_inputs = []  # subscriptions served directly (nodes/fast_input.py)
 
-    def subscribe_fast(self, msg_type, topic: str, callback, qos) -> None:
-        """A subscription taken without the executor's per-message overhead (for latency measurements)."""
+    def subscribe_fast(self, msg_type, topic: str, callback, qos, with_info: bool = False) -> None:
+        """A subscription taken without the executor's per-message overhead (for latency measurements);
+        with_info: callback(message, info) with rmw's timestamps."""
         from ..nodes.fast_input import FastInput, ServedDirectly
 
         subscription = self.node.create_subscription(msg_type, topic, callback, qos, callback_group=ServedDirectly())
-        self.fast_inputs.append(FastInput(subscription, self.context, callback))
+        fast_input = FastInput(None, self.context)
+        fast_input.add(subscription, callback, with_info)
+        self.fast_inputs.append(fast_input)
 
     def spin_until(self, condition, timeout: float) -> bool:
         """Spin the client until condition() or the deadline; a node process that died is an error."""
