@@ -104,11 +104,9 @@ def test_each_state_is_answered_with_the_correction_made_after_it(ros, tmp_path)
 
         def ages(count: int) -> np.ndarray:
             """Correction age when its increment left (s), over the next `count` answers."""
-            with bridge._lock:
-                bridge._ages.clear()
-            assert ros.spin_until(lambda: len(bridge._ages) >= count, 30.0), vars(bridge.client.counters)
-            with bridge._lock:
-                return np.array(bridge._ages)
+            bridge.latency.report()  # a new window
+            assert ros.spin_until(lambda: len(bridge.latency) >= count, 30.0), vars(bridge.client.counters)
+            return np.array(bridge.latency.snapshot())
 
         held = ages(20)
         assert np.median(held) < 0.5 * period, held

@@ -213,3 +213,28 @@ def test_dense_refinement_through_the_node(ros, gauge, rng):
     position, angle = pose_error(est_r, est_t, rotation, t)
     assert position < 2e-6 and angle < 10e-6
     assert not probe.estimator.set_parameters([Parameter("refine_model", value="magic")])[0].successful
+
+
+def test_profiles_dropped_from_a_full_queue_are_counted_and_reported(ros, gauge, rng):
+    """A burst while the node is busy overflows its queue (oldest dropped, no middleware event): every
+    profile is either estimated or counted in profiles_lost, and the diagnostics warn."""
+    probe = Probe(ros, queue_depth=5)
+    msg = cloud_from_points(render_profile(gauge, *sample_pose(gauge, rng)), probe.stamp(), "profiler")
+    estimator, sent = probe.estimator, []
+
+    def publish():
+        probe.publisher.publish(msg)
+        sent.append(1)
+    assert ros.spin_until(lambda: estimator.received > 0, action=publish), "no profile reached the estimator"
+    # every warm-up profile accounted for, so that none is still in flight when the burst starts
+    assert ros.spin_until(lambda: estimator.received + estimator.gaps.missed >= len(sent))
+    received, lost = estimator.received, estimator.gaps.missed
+    for _ in range(40):  # without spinning: the estimator cannot take any of them yet
+        probe.publisher.publish(msg)
+    assert ros.spin_until(lambda: estimator.received - received + estimator.gaps.missed - lost >= 40)
+    burst_received, burst_lost = estimator.received - received, estimator.gaps.missed - lost
+    assert burst_received + burst_lost == 40 and burst_lost >= 30, (burst_received, burst_lost)
+    assert ros.spin_until(lambda: any(
+        s.level == DiagnosticStatus.WARN and "profiles lost before processing" in s.message
+        and any(kv.key == "profiles_lost" and int(kv.value) >= burst_lost for kv in s.values)
+        for a in probe.diagnostics for s in a.status))

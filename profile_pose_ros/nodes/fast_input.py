@@ -61,6 +61,17 @@ class FastInput:
         with_info: callback(message, info), info being rmw's dict (source_timestamp, received_timestamp
         in ns: when the writer published it and when DDS delivered it here, before this thread woke)."""
         self.inputs.append((subscription, callback, with_info))
+        self._new_wait_set()
+
+    def remove(self, subscription: Subscription) -> None:
+        """Stop serving `subscription` (the caller destroys it)."""
+        self.inputs = [item for item in self.inputs if item[0] is not subscription]
+        self._new_wait_set()
+
+    def _new_wait_set(self) -> None:
+        if not self.inputs and self.guard is None:
+            self.wait_set = None
+            return
         self.wait_set = _rclpy.WaitSet(len(self.inputs), 0 if self.guard is None else 1, 0, 0, 0, 0,
                                        self.context.handle)
 

@@ -24,6 +24,7 @@ from rclpy.time import Time
 from std_srvs.srv import Trigger
 
 from ..core import motoplus_protocol as mp
+from ..core.latency_window import LatencyWindow
 from ..core.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
@@ -82,7 +83,7 @@ class MotoPlusBridgeNode(Node):
         self._velocities: list[tuple[int, np.ndarray]] = []  # (stamp ns, velocity) since the last increment
         self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity)
         self._fresh = threading.Condition(self._lock)  # a correction arrived
-        self._ages: list[float] = []  # trigger-to-send times (s) since the last diagnostics
+        self.latency = LatencyWindow("trigger_to_send_ms")  # the newest correction's trigger -> its increment sent
         self._sent: list[tuple[int, tuple[int, ...]]] = []  # increments sent, not yet published
         self.stale_periods = 0
         self.state_pub = self.create_publisher(PoseStamped, "robot_state", 10)
@@ -155,8 +156,8 @@ class MotoPlusBridgeNode(Node):
     def _on_sent(self, units: tuple[int, ...], stamp: float, sent: float) -> None:
         """Socket thread, right after a moving CORRECTION left: note it; the executor publishes it.
         Publishing here would make the thread that must answer every STATE within the period wait for the GIL."""
+        self.latency.add(sent - stamp)
         with self._lock:
-            self._ages.append(sent - stamp)
             self._sent.append((int(round(stamp * 1e9)), units))
         self._sent_guard.trigger()
 
@@ -227,12 +228,7 @@ class MotoPlusBridgeNode(Node):
         if c.last_state is not None:
             values.update({"controller_status": c.last_state.status, "echoed_seq": c.last_state.echoed_seq,
                            "total_offset_um": list(c.last_state.offset[:3])})
-        with self._lock:
-            ages, self._ages = np.array(self._ages) * 1e3, []
-        if len(ages):
-            values.update({"trigger_to_send_ms_median": float(np.median(ages)),
-                           "trigger_to_send_ms_p99": float(np.percentile(ages, 99)),
-                           "trigger_to_send_ms_max": float(ages.max())})
+        values.update(self.latency.report())
         self.stale_periods = 0
         self.diagnostics_pub.publish(diagnostic_array(self, "robot",
                                                       f"tcp://{c.host}:{c.port}", level, message, values))

@@ -19,6 +19,7 @@ from rclpy.time import Time
 
 from ..core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base, pd_velocity,
                                 pose_vector_in_base, zvd_impulses)
+from ..core.latency_window import LatencyWindow
 from .diagnostics import OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .messages import rotation_translation, twist_stamped
@@ -88,6 +89,7 @@ class PdCompensatorNode(Node):
                                             callback_group=ServedDirectly())
         self.fast_input = FastInput(pose_sub, self.context, self._on_pose, tick=self._watchdog)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
+        self.latency = LatencyWindow("trigger_to_correction_ms")  # the pose's stamp -> its correction published
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
 
     def pump(self, timeout_sec: float = 0.0) -> int:
@@ -134,6 +136,7 @@ class PdCompensatorNode(Node):
         if self.shaper is not None:
             velocity = self.shaper(stamp, velocity)  # a mix of limited velocities: still within max_speed
         self._publish(velocity, msg.header.stamp)
+        self.latency.add(time.time() - stamp)
         self.corrections += 1
 
     def _publish(self, velocity: np.ndarray, stamp) -> None:
@@ -163,7 +166,7 @@ class PdCompensatorNode(Node):
             level, message = OK, "correcting"
         values = {"poses": self.poses, "corrections": self.corrections, "zero_corrections": self.stale_zeros,
                   "pose_age_ms": age * 1e3, "error_um": [round(float(e) * 1e6, 1) for e in self.last_error[:3]],
-                  "kp": list(self.gains.kp), "kd": list(self.gains.kd)}
+                  "kp": list(self.gains.kp), "kd": list(self.gains.kd), **self.latency.report()}
         self.diagnostics_pub.publish(diagnostic_array(self, "compensator", "pd_compensator",
                                                       level, message, values))
 

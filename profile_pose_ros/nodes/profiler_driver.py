@@ -15,6 +15,7 @@ from rclpy.qos import qos_profile_sensor_data
 from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 
+from ..core.latency_window import LatencyWindow
 from ..core.profiler_protocol import ProfileFrame
 from ..devices.ljx import LjxProfileSource
 from ..devices.profile_source import SimProfileSource
@@ -87,6 +88,7 @@ class ProfilerDriverNode(Node):
         self.link = ProfilerLink(source, trigger, settings, self._emit,
                                  log=lambda text: logger.warn(text, throttle_duration_sec=1.0))
         self._window = (time.monotonic(), 0, 0, 0)
+        self.latency = LatencyWindow("trigger_to_profile_ms")  # the stamp (trigger or receive time) -> published
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
         self.link.start()
         logger.info(f"profiler {source.name}, trigger MCU {v['serial_url'] or 'none'}, "
@@ -96,6 +98,7 @@ class ProfilerDriverNode(Node):
         """Runs on the link's thread."""
         stamp_msg = Time(nanoseconds=int(round(stamp * 1e9))).to_msg()
         self.profile_pub.publish(cloud_from_points(frame.points, stamp_msg, self.values["frame_id"]))
+        self.latency.add(time.time() - stamp)
 
     def _publish_diagnostics(self) -> None:
         link, c, trigger = self.link, self.link.counters, self.link.trigger
@@ -119,7 +122,8 @@ class ProfilerDriverNode(Node):
                   "profiles_dropped": c.dropped, "bad_frames": c.bad_frames, "unsynced_profiles": c.unsynced,
                   "dropped_late_trigger_line": c.late_lines,
                   "discarded_while_pairing": c.discarded, "connections": c.connections, "pairings": c.resyncs,
-                  "last_error": link.last_error or "none", "source": link.source.name}
+                  "last_error": link.last_error or "none", "source": link.source.name,
+                  **self.latency.report()}
         if trigger is not None:
             jitter_median, jitter_max = trigger.clock.residual_stats()
             values.update({"trigger_state": trigger.state, "trigger_lines": trigger.lines,

@@ -2,6 +2,7 @@
 not a traceback), spin until Ctrl-C or shutdown, and always destroy the node and shut rclpy down."""
 from __future__ import annotations
 
+import gc
 import signal
 import sys
 from typing import Callable
@@ -46,6 +47,11 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
         print(f"[{name}] refusing to start: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
+    # What start-up built (modules, compiled kernels, rclpy's types: ~10^5 objects) lives as long as the
+    # process; frozen, the collector never walks it again. A full collection over it took 37 ms here,
+    # tens of profiles at 1 kHz; what the node allocates from now on is collected as usual.
+    gc.collect()
+    gc.freeze()
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:

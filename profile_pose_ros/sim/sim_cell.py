@@ -189,11 +189,15 @@ class SimCellNode(Node):
         return SetParametersResult(successful=True)
 
     def _publish_truth(self, truth: Truth) -> None:
+        if not self.truth_pub.get_subscription_count():  # a third of the clock thread's time at 1 kHz
+            return
         stamp = Time(nanoseconds=truth.time_ns).to_msg()
         self.truth_pub.publish(pose_stamped(truth.rotation, truth.translation, stamp, self.values["gauge_frame"]))
 
     def _publish_applied(self, wall_time: float, units: tuple[int, ...]) -> None:
         """The increment the controller applied this armed period (m, rad): what the robot was really told."""
+        if not self.applied_pub.get_subscription_count():
+            return
         stamp = Time(nanoseconds=int(wall_time * 1e9)).to_msg()
         self.applied_pub.publish(twist_stamped(units_to_metres(units), stamp, "base"))
 

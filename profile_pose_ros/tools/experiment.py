@@ -107,8 +107,9 @@ class Experiment:
         node = graph.node
         self.poses: list[tuple[float, np.ndarray]] = []
         self.truth: list[tuple[float, np.ndarray]] = []
-        graph.subscribe_fast(PoseStamped, "pose", self._on_pose)
-        graph.subscribe_fast(PoseStamped, "/sim/ground_truth", lambda m: self.truth.append(self._sample(m)))
+        self._streams = [graph.subscribe_fast(PoseStamped, "pose", self._on_pose),
+                         graph.subscribe_fast(PoseStamped, "/sim/ground_truth",
+                                              lambda m: self.truth.append(self._sample(m)))]
         self.reference_pub = node.create_publisher(PoseStamped, "reference_pose", 10)
         self.home: tuple[np.ndarray, np.ndarray] | None = None
         self.last_pose = None  # the newest estimated Pose: home's orientation
@@ -141,6 +142,14 @@ class Experiment:
         recent = [p for _, p in self.poses[-int(0.5 / self.period):]]
         self.home = (rotation_translation(self.last_pose)[0], np.mean(recent, axis=0))
         self.reference(np.zeros(3))
+
+    def stop_streams(self) -> None:
+        """Stop taking every pose and truth (after start(): home is known). A long or 1 kHz run that reads
+        the nodes' diagnostics only (soak, latency) leaves that CPU to the graph, and the simulator then
+        publishes no truth at all (it publishes only to subscribers)."""
+        for subscription in self._streams:
+            self.graph.unsubscribe_fast(subscription)
+        self._streams = []
 
     def close_loop(self, settle_s: float = 1.0) -> None:
         """start(), arm the bridge, and let the loop settle on the home reference."""

@@ -85,13 +85,16 @@ class Graph:
         self._served_here = ServedDirectly()
         self._parameter_clients: dict = {}
         self.diagnostics: dict[str, dict] = {}  # status name -> its values, the newest of each node
+        self.diagnostics_listeners: list = []  # callables(status name, values): every report, not just the newest
         from diagnostic_msgs.msg import DiagnosticArray
 
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 100)
 
     def _on_diagnostics(self, msg) -> None:
         for status in msg.status:
-            self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+            values = self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+            for listener in self.diagnostics_listeners:
+                listener(status.name, values)
 
     def _status_prefix(self, node: str) -> str:
         return f"{self.namespace}/{node}:" if self.namespace else f"{node}:"
@@ -168,6 +171,10 @@ class Graph:
                                                      callback_group=self._served_here)
         self.fast_input.add(subscription, callback)
         return subscription
+
+    def unsubscribe_fast(self, subscription) -> None:
+        self.fast_input.remove(subscription)
+        self.node.destroy_subscription(subscription)
 
     def spin_until(self, condition, timeout: float, housekeeping_period: float = 0.01) -> bool:
         """Spin the client until condition() or the deadline; a node process that died is an error. The

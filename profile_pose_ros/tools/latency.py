@@ -6,6 +6,12 @@ so each stage's latency is publish time - trigger time: trigger -> profile publi
 transfer, driver), -> pose published, -> correction published, -> increment sent to the controller
 (the bridge publishes `~/increment` right after the TCP send). The loop is closed and holding still.
 At 1 kHz the profiler has its own trigger clock beside the 250 Hz controller, as a fast profiler would.
+
+Two observers. `nodes` (the default): each node times its own stage (stamp -> publish, or -> TCP send)
+and reports per diagnostics window (core/latency_window.py); this client takes nothing at the loop's
+rate, so it measures the graph without loading it. The p99 is then the worst window's, an upper bound
+of the run's p99. `dds`: this client subscribes to every stage and takes DDS's publish times, an
+outside view that costs the graph about a third of a core at 1 kHz.
 """
 from __future__ import annotations
 
@@ -16,6 +22,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..core.latency_window import pooled
 from .experiment import Experiment
 from .graph import Graph
 from .processes import cpu_seconds
@@ -25,6 +32,10 @@ STAGES = (("profile", "profile", "sensor_msgs/msg/PointCloud2"),
           ("pose", "pose", "geometry_msgs/msg/PoseStamped"),
           ("correction", "correction", "geometry_msgs/msg/TwistStamped"),
           ("increment sent", "/motoplus_bridge/increment", "geometry_msgs/msg/TwistStamped"))
+NODE_STAGES = {"profile": ("profiler_driver", "trigger_to_profile_ms"),  # stage -> who times it, and its key
+               "pose": ("pose_estimator", "trigger_to_pose_ms"),
+               "correction": ("pd_compensator", "trigger_to_correction_ms"),
+               "increment sent": ("motoplus_bridge", "trigger_to_send_ms")}
 
 
 def subscribe_latency(node, topic: str, msgtype: str, qos, sink: Callable[[float], None]):
@@ -37,18 +48,44 @@ def subscribe_latency(node, topic: str, msgtype: str, qos, sink: Callable[[float
         lambda data, info: sink((info["source_timestamp"] - cdr_stamp_ns(data)) * 1e-6), qos, raw=True)
 
 
-def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float, skip: tuple[str, ...] = ()) -> dict:
+class NodeReports:
+    """Every diagnostics report of the stages' nodes while `recording` (the nodes observer)."""
+
+    def __init__(self, graph: Graph) -> None:
+        self.recording = False
+        self.windows: dict[str, list[dict]] = {name: [] for name in NODE_STAGES}
+        graph.diagnostics_listeners.append(self._on_report)
+
+    def _on_report(self, status: str, values: dict) -> None:
+        if not self.recording:
+            return
+        for stage, (node, key) in NODE_STAGES.items():
+            if status.split(":")[0].endswith(node) and f"{key}_n" in values:
+                self.windows[stage].append(values)
+
+    def summaries(self, clear: bool = False) -> dict[str, dict]:
+        """Each stage's windows pooled (p99: the worst window's); clear: start collecting afresh."""
+        out = {stage: pooled(self.windows[stage], key) for stage, (_, key) in NODE_STAGES.items()}
+        if clear:
+            for windows in self.windows.values():
+                windows.clear()
+        return out
+
+
+def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float, skip: tuple[str, ...] = (),
+            observer: str = "nodes") -> dict:
     from rclpy.qos import qos_profile_sensor_data
 
     control_hz = 83.333 if rate_hz < 200 else 250.0
     graph = Graph(out / f"logs_{rate_hz:g}hz", client_name="profile_pose_latency")
     latencies: dict[str, list[float]] = {name: [] for name, *_ in STAGES}
     recording = [False]
+    reports = NodeReports(graph)
     try:
         exp = Experiment(graph, control_hz, noise, refine_model=refine_model,
                          profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None)
         for name, topic, msgtype in STAGES:
-            if name in skip:
+            if name in skip or observer != "dds":
                 continue
 
             def on_latency(ms: float, name=name) -> None:
@@ -57,13 +94,15 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
             qos = qos_profile_sensor_data if name == "profile" else 1000
             subscribe_latency(graph.node, topic, msgtype, qos, on_latency)
         exp.close_loop()
+        exp.stop_streams()
+        exp.wait(1.0)  # the nodes' next reports start windows that hold only the measured time
         cpu_before = {name: cpu_seconds(p.pid) for name, p in graph.processes.items()}
         cpu_before["(this client)"] = time.process_time()
-        recording[0] = True
+        recording[0] = reports.recording = True
         for _ in range(int(round(seconds / 0.5))):
             exp.reference(np.zeros(3))  # again and again: a reference lost before discovery matched would
             exp.wait(0.5)               # leave the compensator sending zeros
-        recording[0] = False
+        recording[0] = reports.recording = False
         cpu = {name: cpu_seconds(p.pid) for name, p in graph.processes.items()}
         cpu["(this client)"] = time.process_time()
         cpu_percent = {name: 100.0 * (cpu[name] - cpu_before[name]) / seconds for name in cpu}
@@ -71,9 +110,10 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
         exp.bridge(arm=False)
     finally:
         graph.close()
+    stages = ({name: summary(v) for name, v in latencies.items()} if observer == "dds"
+              else reports.summaries())
     return {"rate_hz": rate_hz, "control_hz": control_hz, "seconds": seconds, "refine_model": refine_model,
-            "stages_ms": {name: summary(v) for name, v in latencies.items()}, "cpu_percent": cpu_percent,
-            "diagnostics": diagnostics}
+            "observer": observer, "stages_ms": stages, "cpu_percent": cpu_percent, "diagnostics": diagnostics}
 
 
 def print_table(results: list[dict]) -> None:
@@ -85,8 +125,11 @@ def print_table(results: list[dict]) -> None:
                              f"{s['p99']:.3f}", f"{s['max']:.3f}"))
             else:
                 rows.append((f"{r['rate_hz']:g} Hz", f"trigger -> {name}", "0", "-", "-", "-"))
+    observer = results[0]["observer"] if results else "dds"
     print(table(("profile rate", "stage", "messages", "median ms", "p99 ms", "max ms"), rows,
-                "latency from the trigger (stamps) to each stage's publish / send time"))
+                "latency from the trigger (stamps) to each stage's publish / send time"
+                + (" (timed by the nodes: median of the windows' medians, p99 the worst window's)"
+                   if observer == "nodes" else " (DDS publish times seen by this client)")))
     for r in results:
         print(f"CPU at {r['rate_hz']:g} Hz (% of one core): "
               + ", ".join(f"{name} {value:.0f}" for name, value in r["cpu_percent"].items()))
@@ -98,14 +141,18 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, default=20.0, help="measured time per rate")
     parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
     parser.add_argument("--noise", type=float, default=5e-6)
-    parser.add_argument("--skip", nargs="*", default=[], help="stages not to subscribe to")
+    parser.add_argument("--observer", default="nodes", choices=["nodes", "dds"],
+                        help="nodes: each node's own timing, from its diagnostics (no load from this client); "
+                             "dds: this client subscribes to every stage")
+    parser.add_argument("--skip", nargs="*", default=[], help="stages not to subscribe to (dds observer)")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "latency")
     results = []
     for rate in args.rates:
         print(f"measuring at {rate:g} Hz for {args.seconds:g} s (logs in {out})", flush=True)
-        results.append(measure(rate, args.seconds, out, args.refine_model, args.noise, tuple(args.skip)))
+        results.append(measure(rate, args.seconds, out, args.refine_model, args.noise, tuple(args.skip),
+                               args.observer))
     print_table(results)
     write_json(out / "latency.json", {"results": results})
     print(f"results: {out / 'latency.json'}")

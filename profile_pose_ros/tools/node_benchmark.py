@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from ..core import Gauge, render_profile, sample_pose
+from ..core.sequence_gaps import SequenceGaps
 from ..resources import DEFAULT_GAUGE, config_path
 from . import processes
 from .node_process import NodeProcess
@@ -82,14 +83,15 @@ def publisher_main(domain_id: int, rate_hz: float, seconds: float, seed: int, ga
 class LoadRun(NodeProcess):
     """One rate: a node process, a publisher thread at the rate, and a receiver."""
 
-    def __init__(self, gauge: Gauge, rate_hz: float, seconds: float, out_dir, seed: int) -> None:
+    def __init__(self, gauge: Gauge, rate_hz: float, seconds: float, out_dir, seed: int,
+                 node_params: tuple[str, ...] = ()) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
 
         super().__init__("pose_estimator", "profile_pose_ros.nodes.pose_estimator",
-                         ["-p", f"gauge_file:={gauge.source}"],
+                         ["-p", f"gauge_file:={gauge.source}", *(a for p in node_params for a in ("-p", p))],
                          "node_benchmark", 1 + (os.getpid() + int(rate_hz)) % 200,
                          out_dir / f"pose_estimator_{rate_hz:g}Hz.log")
         self.rate_hz, self.seconds, self.seed, self.gauge_file = rate_hz, seconds, seed, gauge.source
@@ -97,6 +99,7 @@ class LoadRun(NodeProcess):
         self.publisher = self.node.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
         self.latencies: list[float] = []  # to DDS's delivery here
         self.taken_latencies: list[float] = []  # to this thread taking it
+        self.pose_gaps = SequenceGaps()  # poses the node published that never reached this client
         self.diagnostics: list = []
         self.subscribe_fast(PoseStamped, "pose", self._on_pose, 1000, with_info=True)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 100)
@@ -107,6 +110,7 @@ class LoadRun(NodeProcess):
         taken = time.time_ns()
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         self.latencies.append((info["received_timestamp"] - stamp) * 1e-9)
+        self.pose_gaps.update(info.get("publication_sequence_number"))
         self.taken_latencies.append((taken - stamp) * 1e-9)
 
     def _publish(self, msg) -> None:
@@ -137,6 +141,7 @@ class LoadRun(NodeProcess):
         self.spin_until(lambda: False, 0.5)  # discard the load process's warm-up poses
         self.latencies.clear()
         self.taken_latencies.clear()
+        self.pose_gaps = SequenceGaps()
         cpu_start, wall_start = processes.cpu_seconds(pid), time.monotonic()
         load.stdin.write("go\n")
         load.stdin.flush()
@@ -166,6 +171,7 @@ class LoadRun(NodeProcess):
                 "cpu_share": cpu / wall, "peak_rss_mib": max(s["VmHWM"] for s in self.samples) / 1024,
                 "rss_first_mib": rss[0], "rss_last_mib": rss[-1], "rss_growth_mib": rss[-1] - rss[0],
                 "rss_per_second_mib": rss, "node_reported_lost": lost,
+                "poses_lost_to_client": self.pose_gaps.missed,
                 "node_callback_ms": float(np.median(callback_ms)) if callback_ms else float("nan"),
                 "node_callback_cpu_ms": float(np.median(reported("mean_processing_cpu_ms") or [float("nan")]))}
 
@@ -177,6 +183,8 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="3 s per rate (for tests)")
     parser.add_argument("--gauge", default=str(config_path(DEFAULT_GAUGE)))
     parser.add_argument("--out", default="runs")
+    parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
+                        help="a pose_estimator parameter (repeatable), e.g. queue_depth:=20")
     parser.add_argument("--publisher", nargs=5, metavar=("DOMAIN", "RATE", "SECONDS", "SEED", "GAUGE"),
                         help=argparse.SUPPRESS)  # internal: the load process
     args = parser.parse_args(argv)
@@ -189,7 +197,7 @@ def main(argv=None) -> int:
     results, rows = [], []
     for k, rate in enumerate(args.rates):
         print(f"{rate:g} Hz for {seconds:g} s ...", flush=True)
-        run = LoadRun(gauge, rate, seconds, out, seed=k)
+        run = LoadRun(gauge, rate, seconds, out, seed=k, node_params=tuple(args.param))
         try:
             r = run.run()
         finally:
@@ -198,9 +206,9 @@ def main(argv=None) -> int:
         lat = r["latency_ms"]
         rows.append([f"{rate:g} Hz", f"{r['received']}/{r['sent']}", f"{100 * r['delivered']:.2f} %", lat["median"],
                      lat["p99"], lat["max"], r["latency_taken_ms"]["p99"], f"{100 * r['cpu_share']:.1f} %", r["peak_rss_mib"], r["rss_growth_mib"],
-                     str(r["node_reported_lost"]), r["node_callback_ms"]])
+                     str(r["node_reported_lost"]), str(r["poses_lost_to_client"]), r["node_callback_ms"]])
     print(table(["rate", "poses/profiles", "delivered", "latency median (ms)", "p99", "max", "p99 taken", "node CPU",
-                 "peak RSS (MiB)", "RSS growth (MiB)", "lost (node)", "callback (ms)"], rows,
+                 "peak RSS (MiB)", "RSS growth (MiB)", "lost before node", "lost after", "callback (ms)"], rows,
                 "pose_estimator under load (separate processes, DDS on this host)"))
     write_json(out / "node_benchmark.json", {"runs": results})
     print(f"results: {out / 'node_benchmark.json'}")
