@@ -72,6 +72,10 @@ PARAMETERS = [
           "kept): 20 rides out a 20 ms stall at 1 kHz (5 lost 0.1-0.5 % of the profiles on a loaded 2-core "
           "machine, 20 none); shallower never works on old profiles. Every one dropped is counted in "
           "profiles_lost.", 1, 1000, read_only=True),
+    Param("max_profile_age", 0.0, "Skip, without estimating, a profile older than this when taken (s, its stamp "
+          "against this node's clock): a node that fell behind catches up on fresh profiles instead of working "
+          "through ones the compensator would refuse as stale (its max_pose_age). 0 never skips: a bag replayed "
+          "into a live node carries the recording's stamps. The cell files set 0.05.", 0.0, 10.0),
 ]
 
 _OPTION_OF_PARAMETER = {
@@ -140,7 +144,7 @@ class PoseEstimatorNode(Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10, event_callbacks=quiet)
         self.latency = LatencyWindow("trigger_to_pose_ms")  # the profile's stamp -> its pose published
         self.diagnostics_timer = self.create_timer(self.values["diagnostics_period"], self._publish_diagnostics)
-        self.received = self.published = self.rejected = self.lost_in_transport = 0
+        self.received = self.published = self.rejected = self.lost_in_transport = self.skipped = 0
         self.gaps = SequenceGaps()  # profiles never taken: overwritten in the queue, or lost on the way
         self.stats_lock = threading.Lock()  # callbacks may run on other executors' threads
         self.window = self._new_window(time.monotonic())
@@ -182,7 +186,8 @@ class PoseEstimatorNode(Node):
     # ------------------------------------------------------------------ profiles
     @staticmethod
     def _new_window(start: float) -> dict:
-        return {"received": 0, "rejected": 0, "lost": 0, "busy": 0.0, "cpu": 0.0, "max_age": 0.0, "start": start}
+        return {"received": 0, "rejected": 0, "lost": 0, "skipped": 0, "busy": 0.0, "cpu": 0.0, "max_age": 0.0,
+                "start": start}
 
     def _on_lost(self, info) -> None:
         with self.stats_lock:
@@ -197,11 +202,15 @@ class PoseEstimatorNode(Node):
             age = (self.get_clock().now().nanoseconds - cdr_stamp_ns(serialized)) * 1e-9
         except struct.error:
             age = 0.0  # too short to hold a stamp: decoding rejects it below
-        try:
-            reason = self._estimate_and_publish(serialized)
-        except Exception as exc:  # noqa: BLE001 - a malformed input must never take the node down
-            reason = f"internal error: {exc!r}"
-            self.get_logger().error(reason)
+        max_age = self.values["max_profile_age"]
+        skip = 0.0 < max_age < age
+        reason = ""
+        if not skip:
+            try:
+                reason = self._estimate_and_publish(serialized)
+            except Exception as exc:  # noqa: BLE001 - a malformed input must never take the node down
+                reason = f"internal error: {exc!r}"
+                self.get_logger().error(reason)
         if reason:
             self.last_error = reason
             self.get_logger().warn(f"profile rejected: {reason}", throttle_duration_sec=1.0)
@@ -210,6 +219,8 @@ class PoseEstimatorNode(Node):
             self.window["received"] += 1
             self.window["lost"] += missed
             self.window["max_age"] = max(self.window["max_age"], age)
+            self.skipped += skip
+            self.window["skipped"] += skip
             if reason:
                 self.rejected += 1
                 self.window["rejected"] += 1
@@ -246,12 +257,16 @@ class PoseEstimatorNode(Node):
         elif w["lost"]:
             level, message = WARN, (f"{w['lost']} profiles lost before processing (this node too slow, or the "
                                     f"link dropping)")
+        elif w["skipped"]:
+            level, message = WARN, (f"{w['skipped']} of {received} profiles skipped, older than max_profile_age "
+                                    f"(this node behind)")
         else:
             level, message = OK, f"estimating at {received / elapsed:.1f} Hz"
         values = {
             "rate_hz": received / elapsed, "profiles_received": self.received, "poses_published": self.published,
             "profiles_rejected": self.rejected, "profiles_lost": self.gaps.missed,
             "profiles_lost_in_transport": self.lost_in_transport, "profile_writers": self.gaps.writers,
+            "profiles_skipped_stale": self.skipped,
             "last_error": self.last_error or "none",
             "max_profile_age_ms": w["max_age"] * 1e3,
             "last_reprojection_error_um": self.last_reprojection_error * 1e6,

@@ -21,12 +21,13 @@ FRAMES = {"gauge_frame": "gauge", "profiler_frame": "profiler", "base_frame": "b
 
 SIM_CELL = {
     "profiler_driver": {"serial_url": "socket://127.0.0.1:24693"},
-    "pose_estimator": {"refine_model": "dense"},
+    "pose_estimator": {"refine_model": "dense", "max_profile_age": 0.05},
 }
 HARDWARE = {
     "profiler_driver": {"backend": "ljx", "host": "192.168.0.1", "library_path": "/opt/keyence/lib/libljxacom.so",
                         "serial_url": "/dev/ttyUSB0"},
-    "pose_estimator": {"gauge_file": "/etc/profile_pose_ros/my_gauge.yaml", "refine_model": "dense"},
+    "pose_estimator": {"gauge_file": "/etc/profile_pose_ros/my_gauge.yaml", "refine_model": "dense",
+                       "max_profile_age": 0.05},
     "pd_compensator": {"kp": [1.0, 1.0, 1.0, 1.0, 1.0, 1.0], "kd": [0.0] * 6,
                        "max_speed": [0.005, 0.005, 0.005, 0.02, 0.02, 0.02]},
     "motoplus_bridge": {"host": "192.168.255.1", "max_step": [2e-5, 2e-5, 2e-5, 1e-4, 1e-4, 1e-4],

@@ -101,7 +101,8 @@ class Experiment:
             driver.update(baudrate=2_000_000)
         graph.start("sim_cell", {**sim, **gauge})
         graph.start("profiler_driver", driver)
-        graph.start("pose_estimator", {"diagnostics_period": 0.5, "refine_model": refine_model, **gauge})
+        graph.start("pose_estimator", {"diagnostics_period": 0.5, "refine_model": refine_model,
+                                        "max_profile_age": 0.05, **gauge})  # live: as config/cell.yaml
         graph.start("pd_compensator", {"diagnostics_period": 0.5, **(compensator or {})})
         graph.start("motoplus_bridge", {"port": robot_port, "period": period, "diagnostics_period": 0.5})
         node = graph.node
