@@ -227,3 +227,32 @@ def test_player_refuses_a_missing_bag_with_the_reason(tmp_path) -> None:
         "--ros-args", "-p", f"bag:={tmp_path / 'nothing'}"]
     result = subprocess.run(command, capture_output=True, text=True, timeout=60)
     assert result.returncode == 1 and "nothing" in result.stderr and "refusing to start" in result.stderr
+
+
+def test_recorder_counts_the_messages_it_never_got(ros, tmp_path) -> None:
+    """A burst while the recorder is busy overruns its queue: every message is either in the bag or counted
+    lost, and the diagnostics say so."""
+    from rclpy.parameter import Parameter
+    from rclpy.qos import qos_profile_sensor_data
+    from std_msgs.msg import String
+
+    from profile_pose_ros.nodes.bag_recorder import BagRecorderNode
+
+    chatter = ros.node("talker").create_publisher(String, "chatter", qos_profile_sensor_data)
+    recorder = ros.add(BagRecorderNode(context=ros.context, parameter_overrides=[
+        Parameter("output", value=str(tmp_path / "bag")), Parameter("topics", value=["chatter"]),
+        Parameter("queue_depth", value=5), Parameter("discovery_period", value=0.05)]))
+    sent = []
+
+    def publish() -> None:
+        chatter.publish(String(data="warm-up"))
+        sent.append(1)
+    assert ros.spin_until(lambda: recorder.received > 0, 30.0, action=publish), "nothing recorded"
+    assert ros.spin_until(lambda: recorder.received + recorder.lost >= len(sent))  # none still in flight
+    received, lost = recorder.received, recorder.lost
+    for i in range(40):  # without spinning: the recorder takes none of them yet
+        chatter.publish(String(data=f"b{i}"))
+    assert ros.spin_until(lambda: recorder.received - received + recorder.lost - lost >= 40)
+    burst_recorded, burst_lost = recorder.received - received, recorder.lost - lost
+    assert burst_recorded + burst_lost == 40 and burst_lost >= 30, (burst_recorded, burst_lost)
+    assert recorder.gaps["/chatter"] is not None

@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2, PointField
 
-from profile_pose_ros.core.profile_cdr import decode_profile_cdr
+from profile_pose_ros.core.profile_cdr import decode_profile_cdr, encode_profile_cdr
 from profile_pose_ros.core.profile_cloud import ProfileFormatError
 from profile_pose_ros.nodes.messages import cloud_from_points, points_from_cloud
 
@@ -30,6 +30,33 @@ def test_reads_what_rclpy_serialized(frame_id, intensity):
     assert (profile.stamp_sec, profile.stamp_nanosec, profile.frame_id) == (1_796_000_123, 456_789_012, frame_id)
     assert profile.stamp_ns == 1_796_000_123_456_789_012
     assert profile.points.tobytes() == points_from_cloud(msg).tobytes()
+
+
+def _padding_free(data: bytes) -> bytes:
+    """rclpy leaves CDR alignment padding as whatever was in memory: re-serialized by another library
+    (rosbags, which writes padding as zeros) every field stays and only the padding changes."""
+    from profile_pose_ros.bags.reader import typestore
+
+    store = typestore()
+    return bytes(store.serialize_cdr(store.deserialize_cdr(data, "sensor_msgs/msg/PointCloud2"),
+                                     "sensor_msgs/msg/PointCloud2"))
+
+
+@pytest.mark.parametrize("frame_id", ["profiler", "", "p", "cell_2/profiler_äß"])
+@pytest.mark.parametrize("intensity", [False, True])
+@pytest.mark.parametrize("n", [0, 7, 3200])
+def test_the_driver_publishes_what_rclpy_would_serialize(frame_id, intensity, n):
+    msg = cloud(frame_id, intensity, n) if n > 3 else cloud_from_points(
+        np.zeros((n, 2)), PointCloud2().header.stamp, frame_id, np.ones(n) if intensity else None)
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 1_796_000_123, 456_789_012
+    ours = encode_profile_cdr(points_from_cloud(msg) if n else np.zeros((0, 2)), 1_796_000_123, 456_789_012,
+                              frame_id, np.ones(n) if intensity else None)
+    theirs = serialize_message(msg)
+    assert len(ours) == len(theirs)
+    assert ours == _padding_free(theirs)  # every field the same; padding zero in ours
+    assert _padding_free(ours) == ours
+    if n:
+        assert decode_profile_cdr(ours).points.tobytes() == points_from_cloud(msg).tobytes()
 
 
 def test_field_layout_is_read_not_assumed():

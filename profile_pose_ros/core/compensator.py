@@ -70,11 +70,10 @@ def pose_vector_in_base(rotation: np.ndarray, translation: np.ndarray, mounting:
 
 
 def covariance_in_base(covariance: np.ndarray, mounting: Mounting) -> np.ndarray:
-    """Per-axis variances of a ROS-order (x y z rx ry rz) 6x6 covariance in G, expressed in B."""
+    """Per-axis variances of a ROS-order (x y z rx ry rz) 6x6 covariance in G, expressed in B: the diagonal
+    of R C R^T for the position and the rotation blocks (R block-diagonal, so the cross terms drop out)."""
     r = mounting.rotation
-    block = np.zeros((6, 6))
-    block[:3, :3] = block[3:, 3:] = r
-    return np.diag(block @ covariance @ block.T).copy()
+    return np.concatenate([((r @ covariance[:3, :3]) * r).sum(axis=1), ((r @ covariance[3:, 3:]) * r).sum(axis=1)])
 
 
 class AxisKalman:

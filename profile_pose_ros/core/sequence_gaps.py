@@ -4,9 +4,9 @@ DDS numbers each writer's samples 1, 2, 3, ...; a KEEP_LAST reader that falls be
 samples overwritten in its history without any middleware event (the message-lost event covers only
 samples that never arrived), so a slow node would drop profiles and say nothing. A gap in the numbers it
 takes counts both kinds. One writer per topic is assumed (DESIGN.md's graph); a number that goes back
-is a new writer (a restarted driver, a bag replay), whose numbering started at 1 while this reader was
-already listening. What a writer sent before the reader's first message is not counted (the reader may
-not have existed yet).
+is a new writer (a restarted driver, a bag replay) and starts the count afresh. What a writer sent before
+this reader's first message from it is not counted: it may have been sent before the two had matched,
+which is discovery, not loss.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ class SequenceGaps:
         if sequence is None:
             return 0
         if self.last is None or sequence <= self.last:
-            gap = 0 if self.last is None else sequence - 1
+            gap = 0
             self.writers += 1
         else:
             gap = sequence - self.last - 1

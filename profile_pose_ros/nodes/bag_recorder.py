@@ -4,6 +4,11 @@ Messages are taken serialized (raw) and written as they came, with the QoS their
 the time they arrived. New topics are picked up as they appear. Every `flush_period` the bag reaches
 the disk, so a recorder that is killed loses at most that much (`profile_pose_bag recover` finishes such
 a bag); Ctrl-C or SIGTERM closes it properly. Thin glue around profile_pose_ros.bags.BagWriter.
+
+Messages the recorder never got (its `queue_depth` overrun while it was busy, or lost on the way) are
+counted from the gaps in each writer's DDS sequence numbers (core/sequence_gaps.py) on the topics that
+have one publisher (most of a cell's; /diagnostics, with one per node, is not checked): a bag that is
+missing messages says so.
 """
 from __future__ import annotations
 
@@ -13,6 +18,8 @@ from functools import partial
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
+
+from ..core.sequence_gaps import SequenceGaps
 from rclpy.node import Node
 
 from ..bags import BagError, BagWriter
@@ -60,6 +67,9 @@ class BagRecorderNode(Node):
         self.subscriptions_by_topic: dict[str, object] = {}
         self.refused: dict[str, str] = {}  # topic -> why it is not recorded
         self.received = 0
+        self.gaps: dict[str, SequenceGaps | None] = {}  # per topic while it has one publisher, else None
+        self.lost = 0  # messages never recorded (on single-publisher topics)
+        self.lost_before = 0  # self.lost as of the last diagnostics
         self.flushed = 0  # messages on disk as of the last flush: what a kill cannot take
         self.last_error = ""
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -76,7 +86,10 @@ class BagRecorderNode(Node):
 
     def _discover(self) -> None:
         for topic, types in self.get_topic_names_and_types():
-            if topic in self.subscriptions_by_topic or topic in self.refused or topic in self.excluded:
+            if topic in self.subscriptions_by_topic:
+                self._check_writers(topic)
+                continue
+            if topic in self.refused or topic in self.excluded:
                 continue
             if self.wanted and topic not in self.wanted:
                 continue
@@ -97,14 +110,26 @@ class BagRecorderNode(Node):
             subscription = self.create_subscription(msg_class, topic, on_message, qos, raw=True,
                                                     callback_group=self.served_here)
             self.subscriptions_by_topic[topic] = subscription
-            self.fast_input.add(subscription, on_message)
+            self._check_writers(topic)
+            self.fast_input.add(subscription, on_message, with_info=True)
             self.get_logger().info(f"recording {topic} ({types[0]})")
 
     def _refuse(self, topic: str, reason: str) -> None:
         self.refused[topic] = reason
         self.get_logger().error(f"not recording {topic}: {reason}")
 
-    def _on_message(self, topic: str, data: bytes) -> None:
+    def _check_writers(self, topic: str) -> None:
+        """Count gaps on `topic` only while it has one publisher: several writers' numbers interleave."""
+        single = self.count_publishers(topic) == 1
+        if not single:
+            self.gaps[topic] = None
+        elif self.gaps.get(topic) is None:
+            self.gaps[topic] = SequenceGaps()  # afresh: the writer it had may not be this one
+
+    def _on_message(self, topic: str, data: bytes, info: dict | None = None) -> None:
+        gaps = self.gaps.get(topic)
+        if gaps is not None and info is not None:
+            self.lost += gaps.update(info.get("publication_sequence_number"))
         try:
             self.writer.write(topic, self.get_clock().now().nanoseconds, data)
             self.received += 1
@@ -125,9 +150,15 @@ class BagRecorderNode(Node):
             level, message = ERROR, f"writing failed: {self.last_error}"
         elif not self.subscriptions_by_topic:
             level, message = WARN, "no topic to record yet"
+        elif self.lost > self.lost_before:
+            level, message = WARN, (f"{self.lost - self.lost_before} messages lost before recording (queue_depth "
+                                    f"too small for this machine, or lost on the way)")
         else:
             level, message = OK, f"recording {len(self.subscriptions_by_topic)} topics"
+        self.lost_before = self.lost
         values = {"bag": str(self.writer.path), "messages": self.received, "messages_flushed": self.flushed,
+                  "messages_lost": self.lost,
+                  "topics_checked_for_loss": sum(g is not None for g in self.gaps.values()),
                   "topics": len(self.subscriptions_by_topic),
                   "splits_closed": self.writer.splits_closed, "not_recorded": "; ".join(
                       f"{t}: {r}" for t, r in self.refused.items()) or "none"}
@@ -144,7 +175,7 @@ class BagRecorderNode(Node):
         for topic, subscription in self.subscriptions_by_topic.items():
             with subscription.handle:
                 while (taken := subscription.handle.take_message(subscription.msg_type, True)) is not None:
-                    self._on_message(topic, taken[0])
+                    self._on_message(topic, *taken)
                     drained += 1
         return drained
 

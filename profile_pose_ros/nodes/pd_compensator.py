@@ -15,14 +15,13 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.time import Time
 
 from ..core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base, pd_velocity,
                                 pose_vector_in_base, zvd_impulses)
 from ..core.latency_window import LatencyWindow
 from .diagnostics import OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
-from .messages import rotation_translation, twist_stamped
+from .messages import rotation_translation, stamp_ns, twist_stamped
 from .parameters import Param, declare_all, updated
 from .run import run_node
 
@@ -115,7 +114,7 @@ class PdCompensatorNode(Node):
         self.reference = self._vector(msg.pose)
 
     def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
-        stamp = Time.from_msg(msg.header.stamp).nanoseconds * 1e-9
+        stamp = stamp_ns(msg.header.stamp) * 1e-9
         if time.time() - stamp > self.values["max_pose_age"]:
             return  # stale on arrival: the watchdog sends zeros
         z = self._vector(msg.pose.pose)

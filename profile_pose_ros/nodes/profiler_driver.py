@@ -12,17 +12,16 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
-from rclpy.time import Time
 from sensor_msgs.msg import PointCloud2
 
 from ..core.latency_window import LatencyWindow
+from ..core.profile_cdr import encode_profile_cdr
 from ..core.profiler_protocol import ProfileFrame
 from ..devices.ljx import LjxProfileSource
 from ..devices.profile_source import SimProfileSource
 from ..devices.profiler_link import STREAMING, LinkSettings, ProfilerLink
 from ..devices.trigger_link import TriggerLink
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
-from .messages import cloud_from_points
 from .parameters import Param, declare_all
 from .run import run_node
 
@@ -95,9 +94,10 @@ class ProfilerDriverNode(Node):
                     f"stamps from {v['stamp_source']}")
 
     def _emit(self, frame: ProfileFrame, stamp: float, synced: bool) -> None:
-        """Runs on the link's thread."""
-        stamp_msg = Time(nanoseconds=int(round(stamp * 1e9))).to_msg()
-        self.profile_pub.publish(cloud_from_points(frame.points, stamp_msg, self.values["frame_id"]))
+        """Runs on the link's thread. Published serialized (core/profile_cdr.py): building the PointCloud2
+        for rclpy to convert back was a third of this node's time per profile."""
+        sec, nanosec = divmod(int(round(stamp * 1e9)), 1_000_000_000)
+        self.profile_pub.publish(encode_profile_cdr(frame.points, sec, nanosec, self.values["frame_id"]))
         self.latency.add(time.time() - stamp)
 
     def _publish_diagnostics(self) -> None:
