@@ -109,3 +109,16 @@ def test_compiled_decoding_is_the_numpy_reference_bit_for_bit(rows, with_y, with
         except ProfileFormatError as exc:
             outcomes.append(str(exc))
     assert outcomes[0] == outcomes[1]
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from([0.0, -0.0, 0.01, -0.05, 0.4, np.nan, np.inf, -np.inf]),
+                          st.sampled_from([0.3, 0.45, -0.0, np.nan, np.inf])), max_size=40))
+def test_encoded_points_are_float32_where_valid_and_nan_in_xyz_where_not(pairs) -> None:
+    points = np.array(pairs, dtype=float).reshape(-1, 2)
+    _, step, data = encode_profile(points)
+    table = np.frombuffer(data, dtype="<f4").reshape(-1, step // 4)
+    valid = np.isfinite(points).all(axis=1)
+    assert table[valid, 0].tobytes() == points[valid, 0].astype("<f4").tobytes()  # -0.0 stays -0.0
+    assert table[valid, 2].tobytes() == points[valid, 1].astype("<f4").tobytes()
+    assert np.all(table[valid, 1] == 0) and np.isnan(table[~valid, :3]).all()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -107,11 +108,20 @@ def encode_profile_cdr(points: np.ndarray, stamp_sec: int, stamp_nanosec: int, f
                        intensity: np.ndarray | None = None) -> bytes:
     """An (N, 2) [x, z] profile as a serialized PointCloud2 (DESIGN.md's layout, encode_profile's fields)."""
     fields, step, table = encode_profile(points, intensity)
+    prefix = _cloud_prefix(frame_id, tuple(fields), step, len(points))
+    return b"".join((prefix[:_HEADER], _STAMP.pack(stamp_sec, stamp_nanosec), prefix[_HEADER + _STAMP.size:],
+                     table, b"\x00"))  # is_dense: invalid points are NaN
+
+
+@lru_cache(maxsize=16)
+def _cloud_prefix(frame_id: str, fields: tuple[Field, ...], step: int, width: int) -> bytes:
+    """Everything before the point table, stamped zero: the same for every profile of a driver (building it
+    field by field took longer than the table)."""
     writer = _Writer()
-    writer.pack(_STAMP, stamp_sec, stamp_nanosec)
+    writer.pack(_STAMP, 0, 0)
     writer.string(frame_id)
     writer.align(4)
-    writer.pack(_U32X2, 1, len(points))
+    writer.pack(_U32X2, 1, width)
     writer.u32(len(fields))
     for field in fields:
         writer.string(field.name)
@@ -120,10 +130,8 @@ def encode_profile_cdr(points: np.ndarray, stamp_sec: int, stamp_nanosec: int, f
         writer.u32(field.count)
     writer.out.append(0)  # is_bigendian
     writer.align(4)
-    writer.pack(_U32X2, step, step * len(points))
-    writer.u32(len(table))
-    writer.out += table
-    writer.out.append(0)  # is_dense: invalid points are NaN
+    writer.pack(_U32X2, step, step * width)
+    writer.u32(step * width)  # the table's length
     return bytes(writer.out)
 
 
