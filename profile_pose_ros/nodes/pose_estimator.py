@@ -26,9 +26,10 @@ from ..core import fast_wrapper
 from ..core.fast_wrapper import warm_up
 from ..core.gauge import Gauge, GaugeError
 from ..core.latency_window import LatencyWindow
-from ..core.sequence_gaps import SequenceGaps
+from ..core.pose_cdr import SerializedPosePair
 from ..core.profile_cdr import decode_profile_cdr
 from ..core.profile_cloud import ProfileFormatError
+from ..core.sequence_gaps import SequenceGaps
 from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
@@ -98,14 +99,14 @@ def options_from(values: dict) -> EstimatorOptions:
 @dataclass
 class ProfileResult:
     reason: str = ""  # why no pose; empty when there is one
-    pose: PoseStamped | None = None
-    pose_with_covariance: PoseWithCovarianceStamped | None = None
+    pose: PoseStamped | bytes | None = None  # messages, or serialized (SerializedPosePair): both publish
+    pose_with_covariance: PoseWithCovarianceStamped | bytes | None = None
     reprojection_error: float | None = None
     stamp_ns: int | None = None  # the profile's, when it had a pose
 
 
 def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOptions, profiler_frame: str,
-                       gauge_frame: str, into: PoseMessagePair | None = None) -> ProfileResult:
+                       gauge_frame: str, into: PoseMessagePair | SerializedPosePair | None = None) -> ProfileResult:
     """The node's whole computation for one profile (a serialized PointCloud2, as taken from the topic or
     read from a bag), without the node: profile_pose_replay runs exactly this on recorded profiles, so a
     replay reproduces the published poses bit for bit. The poses are `into`'s messages, refilled, when it
@@ -162,7 +163,7 @@ class PoseEstimatorNode(Node):
             self.add_waitable(handler)
         self.fast_input = FastInput(None, self.context)
         self.fast_input.add(self.profile_sub, self._on_profile, with_info=True)
-        self.outgoing = PoseMessagePair()
+        self.outgoing = SerializedPosePair()  # published as bytes: core/pose_cdr.py
         self.last_error = ""
         self.last_reprojection_error = float("nan")
         self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}; "
