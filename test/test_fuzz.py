@@ -5,7 +5,7 @@ from profile_pose_ros.tools.fuzz import fuzz
 
 def test_no_decoder_raises_anything_but_its_documented_error() -> None:
     results = fuzz(2000, seed=7)
-    assert len(results) == 7
+    assert len(results) == 9
     for r in results:
         assert r["unexpected"] == 0, (r["target"], r["examples"])
         assert r["accepted"] > 0 and r["rejected"] > 0, r  # the mutations reach both outcomes

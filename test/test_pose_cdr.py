@@ -1,14 +1,18 @@
-"""The estimator publishes its poses serialized (core/pose_cdr.py): the same messages rclpy would send."""
+"""The loop's small messages travel serialized (core/pose_cdr.py): the estimator's poses and the
+compensator's corrections are the bytes rclpy would send, and what the compensator and the bridge read back
+is the message, or CdrFormatError (fuzzed in test_fuzz.py)."""
 import numpy as np
 import pytest
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from hypothesis import given, settings, strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 
 from profile_pose_ros.bags.reader import typestore
-from profile_pose_ros.core.pose_cdr import SerializedPosePair
+from profile_pose_ros.core.pose_cdr import (CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr,
+                                            decode_twist_cdr, encode_twist_cdr)
 from profile_pose_ros.core.rotation import so3_exp
-from profile_pose_ros.nodes.messages import PoseMessagePair
+from profile_pose_ros.nodes.messages import PoseMessagePair, twist_stamped
 
 TYPES = {"pose": "geometry_msgs/msg/PoseStamped", "with_covariance": "geometry_msgs/msg/PoseWithCovarianceStamped"}
 
@@ -46,3 +50,29 @@ def test_a_serialized_pose_reads_back_as_the_message() -> None:
     assert pose.pose.pose.orientation.z == pytest.approx(np.sqrt(0.5)) and pose.pose.pose.orientation.w > 0
     assert list(pose.pose.covariance) == list(range(36))
     assert deserialize_message(serialized.pose, PoseStamped).pose == pose.pose.pose
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(allow_nan=False, allow_infinity=False, width=64), min_size=6, max_size=6),
+       st.text(st.characters(blacklist_characters="\x00"), max_size=12), st.integers(0, 2 ** 62))
+def test_corrections_travel_as_rclpy_would_send_them(values, frame_id, stamp_ns) -> None:
+    sec, nanosec = divmod(stamp_ns, 1_000_000_000)
+    if sec >= 2 ** 31:
+        return
+    theirs = serialize_message(twist_stamped(values, Time(sec=sec, nanosec=nanosec), frame_id))
+    ours = encode_twist_cdr(values, stamp_ns, frame_id)
+    assert ours == padding_zeroed(theirs, "geometry_msgs/msg/TwistStamped")
+    stamp, frame, decoded = decode_twist_cdr(theirs)
+    assert (stamp, frame, decoded.tolist()) == (stamp_ns, frame_id, values)
+
+
+def test_a_pose_the_estimator_sent_reads_back_in_the_compensator() -> None:
+    serialized = SerializedPosePair()
+    serialized.fill(np.eye(3), np.array([0.1, 0.2, 0.3]), np.arange(36.0).reshape(6, 6), 5, 6, "gauge")
+    stamp, frame, pose, covariance = decode_pose_with_covariance_cdr(serialized.with_covariance)
+    assert (stamp, frame, pose) == (5_000_000_006, "gauge", (0.1, 0.2, 0.3, 0.0, 0.0, 0.0, 1.0))
+    assert covariance.tolist() == np.arange(36.0).reshape(6, 6).tolist()
+    for bad in (serialized.pose, serialized.with_covariance[:-8], serialized.with_covariance + bytes(8), b"",
+                b"\x01\x00" + serialized.with_covariance[2:]):
+        with pytest.raises(CdrFormatError):
+            decode_pose_with_covariance_cdr(bad)

@@ -25,11 +25,12 @@ from std_srvs.srv import Trigger
 
 from ..core import motoplus_protocol as mp
 from ..core.latency_window import LatencyWindow
+from ..core.pose_cdr import CdrFormatError, decode_twist_cdr
 from ..core.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
-from .messages import fill_pose, twist_stamped, twist_vector
+from .messages import fill_pose, twist_stamped
 from .parameters import Param, declare_all, updated
 from .run import run_node
 
@@ -95,7 +96,7 @@ class MotoPlusBridgeNode(Node):
         self._sent_guard = self.create_guard_condition(self._publish_increments, callback_group=direct)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         corrections = self.create_subscription(TwistStamped, "correction", self._on_correction, 10,
-                                               callback_group=direct)
+                                               callback_group=direct, raw=True)  # read by core/pose_cdr.py
         self.fast_input = FastInput(corrections, self.context, self._on_correction, guard=self._sent_guard)
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/stop", self._on_stop)
@@ -113,12 +114,15 @@ class MotoPlusBridgeNode(Node):
                     f"{'arming' if v['arm_on_start'] else 'disarmed until ~/start'}")
 
     # ---------------------------------------------------------------- corrections
-    def _on_correction(self, msg: TwistStamped) -> None:
-        velocity = twist_vector(msg.twist)
+    def _on_correction(self, serialized: bytes) -> None:
+        try:
+            stamp, _, velocity = decode_twist_cdr(serialized)
+        except CdrFormatError as exc:
+            self.get_logger().error(f"malformed correction ignored: {exc}", throttle_duration_sec=1.0)
+            return
         if not np.all(np.isfinite(velocity)):
             self.get_logger().error("correction with NaN or inf ignored", throttle_duration_sec=1.0)
             return
-        stamp = Time.from_msg(msg.header.stamp).nanoseconds
         with self._lock:
             self._velocities.append((stamp, velocity))
             self._latest = (stamp, velocity)

@@ -19,9 +19,11 @@ from rclpy.node import Node
 from ..core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base, pd_velocity,
                                 pose_vector_in_base, zvd_impulses)
 from ..core.latency_window import LatencyWindow
+from ..core.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
+from ..core.rotation import rotation_from_quaternion_xyzw
 from .diagnostics import OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
-from .messages import rotation_translation, stamp_ns, twist_stamped
+from .messages import rotation_translation
 from .parameters import Param, declare_all, updated
 from .run import run_node
 
@@ -84,8 +86,9 @@ class PdCompensatorNode(Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # Poses are taken straight from their subscription (fast_input.py): through the executor each one
         # waited behind its per-wake-up bookkeeping and the 100 Hz watchdog, about a millisecond per hop here.
+        # ... and serialized: read with struct, corrections written the same way (core/pose_cdr.py)
         pose_sub = self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose, 10,
-                                            callback_group=ServedDirectly())
+                                            callback_group=ServedDirectly(), raw=True)
         self.fast_input = FastInput(pose_sub, self.context, self._on_pose, tick=self._watchdog)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
         self.latency = LatencyWindow("trigger_to_correction_ms")  # the pose's stamp -> its correction published
@@ -105,7 +108,9 @@ class PdCompensatorNode(Node):
 
     # ---------------------------------------------------------------- inputs
     def _vector(self, pose) -> np.ndarray:
-        rotation, translation = rotation_translation(pose)
+        return self._pose_vector(*rotation_translation(pose))
+
+    def _pose_vector(self, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
         if self.anchor is None:
             self.anchor = self.mounting.rotation @ rotation
         return pose_vector_in_base(rotation, translation, self.mounting, self.anchor)
@@ -113,13 +118,19 @@ class PdCompensatorNode(Node):
     def _on_reference(self, msg: PoseStamped) -> None:
         self.reference = self._vector(msg.pose)
 
-    def _on_pose(self, msg: PoseWithCovarianceStamped) -> None:
-        stamp = stamp_ns(msg.header.stamp) * 1e-9
+    def _on_pose(self, serialized: bytes) -> None:
+        try:
+            pose_stamp_ns, _, pose, covariance = decode_pose_with_covariance_cdr(serialized)
+        except CdrFormatError as exc:
+            self.get_logger().error(f"malformed pose ignored: {exc}", throttle_duration_sec=1.0)
+            return
+        stamp = pose_stamp_ns * 1e-9
         if time.time() - stamp > self.values["max_pose_age"]:
             return  # stale on arrival: the watchdog sends zeros
-        z = self._vector(msg.pose.pose)
+        rotation = rotation_from_quaternion_xyzw(np.array(pose[3:]))
+        z = self._pose_vector(rotation, np.array(pose[:3]))
         if self.values["use_covariance"]:
-            variance = covariance_in_base(np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6), self.mounting)
+            variance = covariance_in_base(covariance, self.mounting)
         else:
             variance = np.full(6, self.values["measurement_std"] ** 2)
         if not (np.all(np.isfinite(z)) and np.all(np.isfinite(variance))):
@@ -134,12 +145,12 @@ class PdCompensatorNode(Node):
         velocity = pd_velocity(self.last_error, self.filter.velocity, self.gains)
         if self.shaper is not None:
             velocity = self.shaper(stamp, velocity)  # a mix of limited velocities: still within max_speed
-        self._publish(velocity, msg.header.stamp)
+        self._publish(velocity, pose_stamp_ns)
         self.latency.add(time.time() - stamp)
         self.corrections += 1
 
-    def _publish(self, velocity: np.ndarray, stamp) -> None:
-        self.correction_pub.publish(twist_stamped(velocity, stamp, self.values["base_frame"]))
+    def _publish(self, velocity: np.ndarray, stamp_ns: int) -> None:
+        self.correction_pub.publish(encode_twist_cdr(velocity, stamp_ns, self.values["base_frame"]))
 
     def _watchdog(self) -> float:
         """Zero correction while the pose is stale or there is no reference, repeated at watchdog_rate;
@@ -151,7 +162,7 @@ class PdCompensatorNode(Node):
         self.filter.reset()  # the next fresh pose starts the filter again, not from old motion
         if self.shaper is not None:
             self.shaper.reset()  # nor does old shaped motion come back after a stale spell
-        self._publish(np.zeros(6), self.get_clock().now().to_msg())
+        self._publish(np.zeros(6), self.get_clock().now().nanoseconds)
         self.stale_zeros += 1
         return now + 1.0 / self.values["watchdog_rate"]
 

@@ -80,10 +80,11 @@ def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.nd
 class Experiment:
     def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0,
                  compensator: dict | None = None, refine_model: str = "dense", profile_rate_hz: float | None = None,
-                 bag: Path | None = None, gauge_file: str = "") -> None:
+                 bag: Path | None = None, gauge_file: str = "", estimator: dict | None = None) -> None:
         """rate_hz: the controller's (83.333 or 250), which also triggers the profiler unless
         profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there;
-        gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one)."""
+        gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one);
+        estimator, compensator: parameters for those nodes beyond the defaults."""
         from geometry_msgs.msg import PoseStamped
 
         self.graph, self.rate_hz = graph, rate_hz
@@ -101,8 +102,9 @@ class Experiment:
             driver.update(baudrate=2_000_000)
         graph.start("sim_cell", {**sim, **gauge})
         graph.start("profiler_driver", driver)
-        graph.start("pose_estimator", {"diagnostics_period": 0.5, "refine_model": refine_model,
-                                        "max_profile_age": 0.05, **gauge})  # live: as config/cell.yaml
+        # every pose counts in the step metrics, late or not: no max_profile_age here (the soak sets it)
+        graph.start("pose_estimator", {"diagnostics_period": 0.5, "refine_model": refine_model, **gauge,
+                                        **(estimator or {})})
         graph.start("pd_compensator", {"diagnostics_period": 0.5, **(compensator or {})})
         graph.start("motoplus_bridge", {"port": robot_port, "period": period, "diagnostics_period": 0.5})
         node = graph.node

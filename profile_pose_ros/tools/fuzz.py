@@ -18,6 +18,8 @@ import yaml
 
 from ..core import motoplus_protocol as mp
 from ..core.gauge import Gauge, GaugeError
+from ..core.pose_cdr import CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr, decode_twist_cdr, \
+    encode_twist_cdr
 from ..core.profile_cdr import decode_profile_cdr
 from ..core.profile_cloud import Field, ProfileFormatError, decode_profile, encode_profile
 from ..core.profiler_protocol import FrameDecoder, ProfilerProtocolError, encode_frame
@@ -115,6 +117,16 @@ def _serialized_clouds(points: np.ndarray) -> list[bytes]:
             for frame, intensity in (("profiler", None), ("cell_2/profiler", np.ones(len(points))))]
 
 
+def _serialized_poses() -> list[bytes]:
+    """Poses as the compensator takes them (the estimator's bytes), two frame names."""
+    out = []
+    for frame in ("gauge", "cell_2/gauge"):
+        pair = SerializedPosePair()
+        pair.fill(np.eye(3), np.array([0.01, -0.02, 0.4]), np.diag([1e-10] * 3 + [1e-8] * 3), 1, 2, frame)
+        out.append(pair.with_covariance)
+    return out
+
+
 def _gauge_yaml(data: bytes) -> None:
     try:
         document = yaml.safe_load(data.decode("utf-8"))
@@ -152,6 +164,11 @@ def targets() -> list[Target]:
         Target("trigger-MCU lines", lines, _trigger_lines, (TriggerLineError,)),
         Target("PointCloud2 profiles", cloud, _point_cloud, (ProfileFormatError,)),
         Target("serialized PointCloud2 profiles", serialized, decode_profile_cdr, (ProfileFormatError,)),
+        Target("serialized poses (pd_compensator)", _serialized_poses(), decode_pose_with_covariance_cdr,
+               (CdrFormatError,)),
+        Target("serialized corrections (motoplus_bridge)",
+               [encode_twist_cdr([1e-3, 0, -2e-3, 0, 0, 1e-2], 5_000_000_007, frame) for frame in ("base", "")],
+               decode_twist_cdr, (CdrFormatError,)),
         Target("gauge files", gauge, _gauge_yaml, (GaugeError,)),
         Target("parameter updates", params, _parameter_updates, (ValueError,)),
     ]

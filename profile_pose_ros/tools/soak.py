@@ -41,8 +41,11 @@ class Soak:
         control_hz = 83.333 if profile_rate_hz < 200 else 250.0
         self.graph = graph
         self.rate_hz = profile_rate_hz
+        # the estimator skips profiles too old for the compensator, as config/cell.yaml has it: when the
+        # machine falls behind, the loop gets fresh poses rather than a backlog of stale ones
         self.exp = Experiment(graph, control_hz, 5e-6, refine_model=refine_model,
-                              profile_rate_hz=profile_rate_hz)  # sim_cell's own clock, which the soak can pause
+                              profile_rate_hz=profile_rate_hz,  # sim_cell's own clock, which the soak can pause
+                              estimator={"max_profile_age": 0.05})
         self.latency = NodeReports(graph)
         self.not_ok: dict[tuple[str, str, str], list] = {}  # (status, level, kind) -> [count, first, last, example]
         self._started = time.time()
