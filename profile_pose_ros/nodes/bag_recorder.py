@@ -18,12 +18,11 @@ from functools import partial
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
-
-from ..core.sequence_gaps import SequenceGaps
 from rclpy.node import Node
 
 from ..bags import BagError, BagWriter
 from ..bags.writer import COMPRESSIONS, STORAGES
+from ..core.sequence_gaps import SequenceGaps
 from .bag_common import message_class, subscription_qos, to_bag_qos
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin

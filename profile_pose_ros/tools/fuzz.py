@@ -18,8 +18,8 @@ import yaml
 
 from ..core import motoplus_protocol as mp
 from ..core.gauge import Gauge, GaugeError
-from ..core.pose_cdr import CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr, decode_twist_cdr, \
-    encode_twist_cdr
+from ..core.pose_cdr import (CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr, decode_twist_cdr,
+                             encode_twist_cdr)
 from ..core.profile_cdr import decode_profile_cdr
 from ..core.profile_cloud import Field, ProfileFormatError, decode_profile, encode_profile
 from ..core.profiler_protocol import FrameDecoder, ProfilerProtocolError, encode_frame
