@@ -54,3 +54,16 @@ def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
     assert open_loop["Mp"] == pytest.approx(13.98, rel=0.2)  # Table IV, z 1 mm, open loop
     assert closed_loop["Mp"] < 0.5 * open_loop["Mp"]
     assert by_mode["closed"]["truth"]["y"][-1] == pytest.approx(1e-3, abs=5e-5)  # it got there, really
+
+
+def test_the_latency_budget_reads_every_stage_from_the_nodes(tmp_path) -> None:
+    """profile_pose_latency's default observer: each node's own timing, from its diagnostics."""
+    from profile_pose_ros.tools.latency import NODE_STAGES, measure
+
+    result = measure(83.333, 3.0, tmp_path, "corners", 5e-6)
+    stages = result["stages_ms"]
+    assert set(stages) == set(NODE_STAGES)
+    for name, s in stages.items():
+        assert s["n"] > 100, (name, s)  # ~250 profiles in 3 s, each timed at every stage
+        assert 0 < s["median"] <= s["p99"] <= s["max"] < 1000, (name, s)
+    assert stages["profile"]["median"] < stages["pose"]["median"] < stages["correction"]["median"]
