@@ -108,3 +108,38 @@ def test_a_killed_bringup_leaves_no_node_behind(ros, tmp_path) -> None:
     assert ros.spin_until(lambda: not node_processes(f"__ns:=/{ns}"), 30.0), [
         (Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[:2], Path(f"/proc/{pid}/status").read_text()[:200])
         for pid in node_processes(f"__ns:=/{ns}")]
+
+
+HANGING_NODE = """
+import sys, time
+from rclpy.node import Node
+from profile_pose_ros.nodes import run
+
+class Hangs(Node):
+    def __init__(self):
+        super().__init__("hangs")
+        print("up", flush=True)
+
+    def destroy_node(self):
+        while True:  # a teardown that never returns
+            time.sleep(0.01)
+
+run.SHUTDOWN_GRACE_S = 1.0
+sys.exit(run.run_node(Hangs, "hangs"))
+"""
+
+
+def test_a_node_whose_teardown_hangs_is_gone_after_the_grace() -> None:
+    import sys
+
+    from profile_pose_ros.tools.processes import fresh_domain_id
+
+    process = subprocess.Popen([sys.executable, "-c", HANGING_NODE], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env=dict(os.environ, ROS_DOMAIN_ID=str(fresh_domain_id())))
+    try:
+        assert process.stdout.readline().strip() == "up"
+        process.send_signal(signal.SIGTERM)
+        _, stderr = process.communicate(timeout=30.0)
+    finally:
+        process.kill()
+    assert process.returncode != 0 and "destroy_node" in stderr, stderr  # where it hung, in its log

@@ -2,6 +2,7 @@
 not a traceback), spin until Ctrl-C or shutdown, and always destroy the node and shut rclpy down."""
 from __future__ import annotations
 
+import faulthandler
 import gc
 import signal
 import sys
@@ -11,6 +12,9 @@ import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+
+
+SHUTDOWN_GRACE_S = 10.0  # from the stop request to the process gone, whatever hangs
 
 
 class StopRequest:
@@ -63,7 +67,13 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        # Seen once (2026-12-02, all five nodes stopping at once when their bringup was SIGKILLed): rcl's
+        # node teardown spun for minutes at 100 % CPU holding the GIL. faulthandler's watchdog is a C thread:
+        # past the grace it prints where the process hung (to the log) and exits, so no node outlives its
+        # cell. destroy_node() has done what matters by then (the bridge's STOP, the bag closed).
+        faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S, exit=True)
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
+        faulthandler.cancel_dump_traceback_later()
     return 0
