@@ -14,8 +14,6 @@ import threading
 
 import numpy as np
 
-SUFFIXES = ("n", "median", "p99", "max")
-
 
 class LatencyWindow:
     """Thread-safe: a socket thread may add while the executor reports."""
