@@ -96,22 +96,23 @@ class Graph:
             for listener in self.diagnostics_listeners:
                 listener(status.name, values)
 
-    def _status_prefix(self, node: str) -> str:
-        return f"{self.namespace}/{node}:" if self.namespace else f"{node}:"
+    def is_from(self, status: str, node: str) -> bool:
+        """Whether a /diagnostics status name is that of `node` of this graph's namespace."""
+        return status.startswith(f"{self.namespace}/{node}:" if self.namespace else f"{node}:")
 
     def reported(self, node: str) -> bool:
         """Whether `node` of this graph's namespace has published /diagnostics."""
-        return any(name.startswith(self._status_prefix(node)) for name in self.diagnostics)
+        return any(self.is_from(name, node) for name in self.diagnostics)
 
     def forget(self, node: str) -> None:
         """Drop what `node` last reported, so that only its next report counts (e.g. after a restart)."""
-        for name in [n for n in self.diagnostics if n.startswith(self._status_prefix(node))]:
+        for name in [n for n in self.diagnostics if self.is_from(n, node)]:
             del self.diagnostics[name]
 
     def diagnostic(self, node: str, key: str, default: str = "") -> str:
         """A value from the newest /diagnostics of `node` of this graph's namespace."""
         for name, values in self.diagnostics.items():
-            if name.startswith(self._status_prefix(node)):
+            if self.is_from(name, node):
                 return values.get(key, default)
         return default
 

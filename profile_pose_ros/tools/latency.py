@@ -52,6 +52,7 @@ class NodeReports:
     """Every diagnostics report of the stages' nodes while `recording` (the nodes observer)."""
 
     def __init__(self, graph: Graph) -> None:
+        self.graph = graph
         self.recording = False
         self.windows: dict[str, list[dict]] = {name: [] for name in NODE_STAGES}
         graph.diagnostics_listeners.append(self._on_report)
@@ -60,7 +61,7 @@ class NodeReports:
         if not self.recording:
             return
         for stage, (node, key) in NODE_STAGES.items():
-            if status.split(":")[0].endswith(node) and f"{key}_n" in values:
+            if self.graph.is_from(status, node) and f"{key}_n" in values:
                 self.windows[stage].append(values)
 
     def summaries(self, clear: bool = False) -> dict[str, dict]:
