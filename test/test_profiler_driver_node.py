@@ -63,7 +63,9 @@ class Rig:
     def run(self, rate_hz: float, triggers: int, timeout: float = 30.0) -> None:
         self.cell.run_clock(rate_hz, triggers)
         counters = self.link.counters
-        done = lambda: counters.published + counters.dropped + counters.discarded >= triggers  # noqa: E731
+
+        def done() -> bool:  # every frame decided on: published, or one of the link's counted drops
+            return counters.published + counters.dropped + counters.discarded + counters.late_lines >= triggers
         assert self.ros.spin_until(done, timeout), (counters, self.cell.profiler.trigger_count)
         assert self.cell.join_clock(5.0)  # its last truth is recorded after its profile went out
         self.ros.spin_until(lambda: len(self.profiles) >= counters.published, 2.0)
@@ -130,7 +132,9 @@ def test_damaged_frames_are_counted_and_never_published(rig_factory) -> None:
     rig.run(150.0, 300)
     c = rig.link.counters
     assert rig.cell.profiler.frames_corrupted > 0 and c.bad_frames >= rig.cell.profiler.frames_corrupted
-    assert c.published + c.dropped == 300
+    # every trigger accounted for; a trigger line that missed sync_timeout on a loaded machine is a counted
+    # drop of its own (late_lines: seen once in a clean-clone CI run, 1 of 300), never a published profile
+    assert c.published + c.dropped + c.late_lines == 300 and c.late_lines <= 3
     rig.check_published_against_truth()
 
 
@@ -141,7 +145,8 @@ def test_reconnects_within_a_second_when_the_device_closes(rig_factory) -> None:
     rig.run(100.0, 400)
     c = rig.link.counters
     assert rig.cell.profiler.closes >= 5 and c.connections >= 6
-    assert c.dropped == rig.cell.profiler.frames_unsent and c.published + c.dropped == 400
+    assert c.dropped == rig.cell.profiler.frames_unsent and c.published + c.dropped + c.late_lines == 400
+    assert c.late_lines <= 4
     assert c.resyncs == 1  # a reconnect to the same device keeps the pairing: no trigger pause
     arrivals = np.array([t for t, _ in rig.profiles])
     assert np.max(np.diff(arrivals)) < 1.0
