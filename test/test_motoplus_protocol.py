@@ -108,3 +108,14 @@ def test_clamp_never_exceeds_the_limit(increment, limits) -> None:
 def test_units() -> None:
     assert mp.metres_to_units([1e-3, -2e-6, 0.0, 3.141592653589793 / 180, 0.0, 0.0]) == (1000, -2, 0, 10000, 0, 0)
     assert mp.units_to_metres((1000, 0, 0, 10000, 0, 0))[0] == pytest.approx(1e-3)
+
+
+def test_sequence_rule_ignores_old_frames_and_faults_after_three_missing() -> None:
+    assert [mp.sequence_verdict(5, seq) for seq in (4, 5, 6, 9, 10)] == ["old", "old", "new", "new", "gap"]
+
+
+def test_a_fault_text_over_200_bytes_is_refused_by_rule() -> None:
+    inner = mp.encode(mp.Frame(1, 0, mp.Fault(2, "")))[4:-4 - 2] + struct.pack("<H", 201) + b"z" * 201
+    with pytest.raises(mp.MotoPlusProtocolError, match="more than 200") as caught:
+        mp.FrameReader().feed(resealed(inner))
+    assert caught.value.rule == "text"

@@ -13,3 +13,6 @@ def test_a_short_soak_counts_every_pose_and_every_process(tmp_path) -> None:
     assert set(v["rss_growth_mb"]) == {"sim_cell", "profiler_driver", "pose_estimator", "pd_compensator",
                                        "motoplus_bridge"}
     assert all(r["pose_p99_ms"] > 0 for r in result["intervals"])
+    for row in result["intervals"]:  # every process's CPU share, the nodes' above nothing
+        assert set(row["cpu_percent"]) == set(v["rss_growth_mb"]) | {"(this client)"}
+        assert all(row["cpu_percent"][name] > 0 for name in v["rss_growth_mb"]), row["cpu_percent"]

@@ -35,14 +35,22 @@ UM_PER_M = 1e6
 TENTH_MILLIDEG_PER_RAD = 1e4 * 180.0 / 3.141592653589793
 
 
+RULES = ("length", "short", "checksum", "magic", "version", "type", "size", "frame", "limits", "text")
+
+
 class MotoPlusProtocolError(ValueError):
-    """A frame that breaks the protocol; the message says which rule."""
+    """A frame that breaks the protocol; the message says how, `rule` (one of RULES) which check failed:
+    the controller-side C codec (firmware/motoplus) reports the same rule for the same bytes."""
+
+    def __init__(self, message: str, rule: str = "size") -> None:
+        super().__init__(message)
+        self.rule = rule
 
 
 def six(values) -> tuple[int, ...]:
     values = tuple(int(v) for v in values)
     if len(values) != 6:
-        raise MotoPlusProtocolError(f"expected 6 values (x y z rx ry rz), got {len(values)}")
+        raise MotoPlusProtocolError(f"expected 6 values (x y z rx ry rz), got {len(values)}", "size")
     return values
 
 
@@ -140,44 +148,48 @@ def _body(kind: int, payload: bytes) -> Body:
             v = _HELLO.unpack(payload)
             hello = Hello(v[0], v[1:7], v[7:13], v[13], v[14], v[15], v[16])
             if hello.frame not in (FRAME_BASE, FRAME_ROBOT, FRAME_TOOL, FRAME_USER):
-                raise MotoPlusProtocolError(f"HELLO: unknown frame {hello.frame}")
+                raise MotoPlusProtocolError(f"HELLO: unknown frame {hello.frame}", "frame")
             if hello.period_us <= 0 or min(hello.max_step) < 0 or min(hello.max_offset) < 0:
-                raise MotoPlusProtocolError("HELLO: period and limits must be positive")
+                raise MotoPlusProtocolError("HELLO: period and limits must be positive", "limits")
             return hello
         if kind == CORRECTION:
             v = _CORRECTION.unpack(payload)
             if v[6] not in (FRAME_BASE, FRAME_ROBOT, FRAME_TOOL, FRAME_USER):
-                raise MotoPlusProtocolError(f"CORRECTION: unknown frame {v[6]}")
+                raise MotoPlusProtocolError(f"CORRECTION: unknown frame {v[6]}", "frame")
             return Correction(v[:6], v[6], v[7], v[8])
         if kind == STATE:
             v = _STATE.unpack(payload)
             return State(v[0], v[1:7], v[7:13], v[13], v[14], v[15])
         if kind in (HEARTBEAT, STOP):
             if payload:
-                raise MotoPlusProtocolError(f"{TYPE_NAMES[kind]} carries no payload, got {len(payload)} bytes")
+                raise MotoPlusProtocolError(f"{TYPE_NAMES[kind]} carries no payload, got {len(payload)} bytes",
+                                            "size")
             return Heartbeat() if kind == HEARTBEAT else Stop()
         if kind == FAULT:
             code, length = _FAULT.unpack_from(payload)
             if len(payload) != _FAULT.size + length:
-                raise MotoPlusProtocolError(f"FAULT: text length {length} does not match the payload")
+                raise MotoPlusProtocolError(f"FAULT: text length {length} does not match the payload", "text")
+            if length > MAX_FAULT_TEXT:
+                raise MotoPlusProtocolError(f"FAULT: text of {length} bytes, more than {MAX_FAULT_TEXT}", "text")
             return Fault(code, payload[_FAULT.size:].decode("utf-8", "replace"))
     except struct.error as exc:
-        raise MotoPlusProtocolError(f"{TYPE_NAMES.get(kind, kind)}: payload of {len(payload)} bytes: {exc}") from None
-    raise MotoPlusProtocolError(f"unknown frame type {kind}")
+        raise MotoPlusProtocolError(f"{TYPE_NAMES.get(kind, kind)}: payload of {len(payload)} bytes: {exc}",
+                                    "size") from None
+    raise MotoPlusProtocolError(f"unknown frame type {kind}", "type")
 
 
 def decode(inner: bytes) -> Frame:
     """One frame without its length prefix; raises MotoPlusProtocolError."""
     if len(inner) < HEADER.size + CRC.size:
-        raise MotoPlusProtocolError(f"frame of {len(inner)} bytes is shorter than a header")
+        raise MotoPlusProtocolError(f"frame of {len(inner)} bytes is shorter than a header", "short")
     (crc,) = CRC.unpack_from(inner, len(inner) - CRC.size)
     if zlib.crc32(inner[:-CRC.size]) != crc:
-        raise MotoPlusProtocolError("checksum mismatch")
+        raise MotoPlusProtocolError("checksum mismatch", "checksum")
     magic, version, kind, _, seq, ack = HEADER.unpack_from(inner)
     if magic != MAGIC:
-        raise MotoPlusProtocolError(f"bad magic {magic!r}")
+        raise MotoPlusProtocolError(f"bad magic {magic!r}", "magic")
     if version != VERSION:
-        raise MotoPlusProtocolError(f"unsupported protocol version {version} (this side speaks {VERSION})")
+        raise MotoPlusProtocolError(f"unsupported protocol version {version} (this side speaks {VERSION})", "version")
     return Frame(seq, ack, _body(kind, bytes(inner[HEADER.size:-CRC.size])))
 
 
@@ -198,7 +210,7 @@ class FrameReader:
             while len(self._buffer) >= PREFIX.size:
                 (length,) = PREFIX.unpack_from(self._buffer)
                 if not HEADER.size + CRC.size <= length <= MAX_FRAME:
-                    raise MotoPlusProtocolError(f"frame length {length} out of range")
+                    raise MotoPlusProtocolError(f"frame length {length} out of range", "length")
                 if len(self._buffer) < PREFIX.size + length:
                     break
                 inner = bytes(self._buffer[PREFIX.size:PREFIX.size + length])
@@ -223,3 +235,14 @@ def clamp(increment, limits) -> tuple[tuple[int, ...], bool]:
     """Each axis within +-limit; also whether anything was cut."""
     out = tuple(max(-lim, min(lim, v)) for v, lim in zip(six(increment), six(limits)))
     return out, out != tuple(increment)
+
+
+MAX_SEQ_GAP = 3  # CORRECTION frames that may go missing in a row before the controller faults
+
+
+def sequence_verdict(last_seq: int, seq: int) -> str:
+    """The controller's rule for a frame's sequence number after `last_seq`: 'new' (take it), 'old'
+    (old or repeated: ignore it) or 'gap' (more than MAX_SEQ_GAP frames missing: FAULT)."""
+    if seq <= last_seq:
+        return "old"
+    return "gap" if seq - last_seq > MAX_SEQ_GAP + 1 else "new"

@@ -22,7 +22,6 @@ from .peer_server import PeerServer
 
 TICK_S = 0.004  # the YRC1000's interpolation clock
 HOLD_AFTER_PERIODS = 3
-MAX_SEQ_GAP = 3
 
 
 @dataclass
@@ -236,9 +235,10 @@ class RobotController:
                 self._fault(mp.FAULT_NOT_ARMED, "CORRECTION before HELLO")
                 return False
             return True
-        if frame.seq <= session.last_seq:
+        verdict = mp.sequence_verdict(session.last_seq, frame.seq)
+        if verdict == "old":
             return True  # old or repeated: ignored
-        if frame.seq - session.last_seq > MAX_SEQ_GAP + 1:
+        if verdict == "gap":
             self._fault(mp.FAULT_SEQUENCE_GAP, f"sequence jumped from {session.last_seq} to {frame.seq}")
             return False
         session.last_seq, session.last_frame = frame.seq, now

@@ -25,6 +25,9 @@ MODULES = {
 }
 
 
+CLIENT_CPU = "(this client)"  # Graph.cpu_seconds' key for the measuring process itself
+
+
 def free_port() -> int:
     """A TCP port free on 127.0.0.1 right now (the OS picks it)."""
     with socket.socket() as s:
@@ -115,6 +118,18 @@ class Graph:
             if self.is_from(name, node):
                 return values.get(key, default)
         return default
+
+    def cpu_seconds(self) -> dict[str, float]:
+        """CPU time (user + system) each node process has used so far, and this client's own under
+        CLIENT_CPU: differences over a window give each one's share of the machine."""
+        out = {}
+        for name, process in self.processes.items():
+            try:
+                out[name] = processes.cpu_seconds(process.pid)
+            except (FileNotFoundError, ProcessLookupError):  # it died; spin_until reports that
+                out[name] = float("nan")
+        out[CLIENT_CPU] = time.process_time()
+        return out
 
     def start(self, executable: str, params: dict | None = None, name: str | None = None) -> subprocess.Popen:
         name = name or executable

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from typing import Callable
 
 import numpy as np
@@ -25,7 +24,6 @@ import numpy as np
 from ..core.latency_window import pooled
 from .experiment import Experiment
 from .graph import Graph
-from .processes import cpu_seconds
 from .report import run_dir, summary, table, write_json
 
 STAGES = (("profile", "profile", "sensor_msgs/msg/PointCloud2"),
@@ -97,15 +95,13 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
         exp.close_loop()
         exp.stop_streams()
         exp.wait(1.0)  # the nodes' next reports start windows that hold only the measured time
-        cpu_before = {name: cpu_seconds(p.pid) for name, p in graph.processes.items()}
-        cpu_before["(this client)"] = time.process_time()
+        cpu_before = graph.cpu_seconds()
         recording[0] = reports.recording = True
         for _ in range(int(round(seconds / 0.5))):
             exp.reference(np.zeros(3))  # again and again: a reference lost before discovery matched would
             exp.wait(0.5)               # leave the compensator sending zeros
         recording[0] = reports.recording = False
-        cpu = {name: cpu_seconds(p.pid) for name, p in graph.processes.items()}
-        cpu["(this client)"] = time.process_time()
+        cpu = graph.cpu_seconds()
         cpu_percent = {name: 100.0 * (cpu[name] - cpu_before[name]) / seconds for name in cpu}
         diagnostics = {k: dict(v) for k, v in exp.diagnostics.items()}
         exp.bridge(arm=False)

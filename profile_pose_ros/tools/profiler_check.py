@@ -14,7 +14,6 @@ import time
 
 import numpy as np
 
-from . import processes
 from ..nodes.messages import cdr_stamp_ns, pose_difference, stamp_ns
 from .graph import Graph, free_port
 from .report import nearest_stamp, run_dir, summary, table, write_json
@@ -73,7 +72,7 @@ class CheckRun:
         if not g.spin_until(lambda: self.value("pose_estimator", "gauge", "") != "", 60.0):
             raise RuntimeError("pose_estimator did not come up")
         self._warm_up()
-        cpu_start = {name: processes.cpu_seconds(p.pid) for name, p in g.processes.items()}
+        cpu_start = g.cpu_seconds()
         wall_start = time.monotonic()
         self._start_clock()
         expected = lambda: self.count("sim_cell/triggers") >= self.triggers  # noqa: E731
@@ -81,8 +80,7 @@ class CheckRun:
         last = lambda: len(self.truth) and self.poses and max(p[0] for p in self.poses[-5:]) >= max(self.truth)  # noqa
         g.spin_until(last, 5.0)
         wall = time.monotonic() - wall_start
-        self.cpu_share = {name: (processes.cpu_seconds(p.pid) - cpu_start[name]) / wall
-                          for name, p in g.processes.items()}
+        self.cpu_share = {name: (used - cpu_start[name]) / wall for name, used in g.cpu_seconds().items()}
         g.spin_until(lambda: False, 1.2)  # the last diagnostics of every node
         return self._compare()
 

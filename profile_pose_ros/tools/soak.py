@@ -1,8 +1,8 @@
 """profile_pose_soak: the closed loop on the simulated cell for a long time (10 minutes at a 1 kHz profile
 rate by default), each node its own process, reporting per interval: profiles triggered and poses
 delivered to the compensator, trigger->pose and trigger->increment latency p99 (as the nodes time them:
-the worst diagnostics window's), resident memory of every process, and every /diagnostics status that
-was not OK. Once the loop is closed this client takes nothing at the loop's rate (only diagnostics), so
+the worst diagnostics window's), resident memory and CPU share of every process, and every /diagnostics
+status that was not OK. Once the loop is closed this client takes nothing at the loop's rate (only diagnostics), so
 the graph has the machine to itself.
 
 The reference steps 0.5 mm back and forth every 10 s so the loop works all along. Verdict: no process
@@ -14,6 +14,7 @@ The totals are exact: the trigger clock is paused before and after the run until
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 import time
@@ -96,7 +97,7 @@ class Soak:
         self.latency.recording = True
         intervals, sign = [], 1.0
         start = before = time.monotonic()
-        counts_before = first
+        counts_before, cpu_before = first, self.graph.cpu_seconds()
         next_reference = start + REFERENCE_EVERY_S
         while time.monotonic() - start < seconds - 1e-6:
             end = min(before + interval, start + seconds)
@@ -106,18 +107,19 @@ class Soak:
                     sign = -sign
                     self.exp.reference(np.array([0.0 if sign > 0 else REFERENCE_STEP_M, 0.0, 0.0]))
                     next_reference += REFERENCE_EVERY_S
-            counts = self.counters()
+            counts, cpu = self.counters(), self.graph.cpu_seconds()
             delta = {k: counts[k] - counts_before[k] for k in counts}
+            cpu_percent = {k: 100.0 * (cpu[k] - cpu_before[k]) / (end - before) for k in cpu if k in cpu_before}
             latency = self.latency.summaries(clear=True)
             row = {"t_s": time.monotonic() - start, **delta,
                    "pose_p99_ms": latency["pose"].get("p99", float("nan")),
                    "increment_p99_ms": latency["increment sent"].get("p99", float("nan")),
-                   "latency_ms": latency, "rss_mb": self.memory_mb()}
+                   "latency_ms": latency, "rss_mb": self.memory_mb(), "cpu_percent": cpu_percent}
             intervals.append(row)
             log(f"  {row['t_s']:6.0f} s: {delta['triggered']} triggered, {delta['compensator_poses']} poses used, "
                 f"p99 trigger->pose {row['pose_p99_ms']:.2f} ms, ->increment {row['increment_p99_ms']:.2f} ms",
                 flush=True)
-            counts_before, before = counts, end
+            counts_before, cpu_before, before = counts, cpu, end
         self._clock(False)
         last = self._settled_counters()
         self.exp.bridge(arm=False)
@@ -172,6 +174,13 @@ def print_report(result: dict) -> None:
                   f"{100.0 * r['compensator_poses'] / max(r['triggered'], 1):.3f} %", f"{r['pose_p99_ms']:.2f}",
                   f"{r['increment_p99_ms']:.2f}", *(f"{r['rss_mb'][n]:.1f}" for n in names)] for r in rows],
                 f"soak: {result['minutes']:g} min at {result['rate_hz']:g} Hz"))
+    if rows and "cpu_percent" in rows[0]:
+        cpu_names = list(rows[0]["cpu_percent"])
+        print(table(["until", *cpu_names, "total"],
+                    [[f"{r['t_s']:.0f} s", *(f"{r['cpu_percent'].get(n, float('nan')):.0f}" for n in cpu_names),
+                      f"{sum(r['cpu_percent'].values()):.0f}"] for r in rows],
+                    "CPU per process (% of one core; the machine has "
+                    f"{os.cpu_count()} cores): where the time goes when the graph falls behind"))
     if result["not_ok"]:
         print(table(["status", "level", "message (first of its kind)", "reports", "first (s)", "last (s)"],
                     [[d["status"], d["level"], d["example"][:90], str(d["count"]), f"{d['first_s']:.0f}",
