@@ -2,7 +2,6 @@
 current and pass, and through ctypes, random frames and mutated streams come out the same on both sides."""
 from __future__ import annotations
 
-import ctypes
 import shutil
 import struct
 import subprocess
@@ -12,15 +11,13 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from conftest import ROOT
 from profile_pose_ros.core import motoplus_protocol as mp
 from profile_pose_ros.tools import motoplus_vectors
+from profile_pose_ros.tools.c_codec import (ERROR_NAMES, SOURCE, STRICT, CCodec, available, same_frame,
+                                            same_outcome)
 from test_motoplus_protocol import BODIES, U32
 
-SOURCE = ROOT / "firmware" / "motoplus"
-STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2"]
-needs_cc = pytest.mark.skipif(not shutil.which("cc"), reason="no C compiler")
-ERROR_NAMES = ["ok", *mp.RULES, "capacity"]  # enum mpcl_error, negated
+needs_cc = pytest.mark.skipif(not available(), reason="no C compiler or no firmware sources")
 
 
 def test_the_vectors_file_is_what_the_python_codec_writes() -> None:
@@ -63,49 +60,14 @@ def test_the_c_codec_passes_the_shared_vectors_and_a_wrong_vector_fails_it(tmp_p
 
 
 @pytest.fixture(scope="module")
-def c_codec(tmp_path_factory):
-    if not shutil.which("cc"):
-        pytest.skip("no C compiler")
-    library = tmp_path_factory.mktemp("mpcl") / "libmpcl.so"
-    subprocess.run(["cc", *STRICT, "-shared", "-fPIC", "-DMPCL_SELFTEST_NO_MAIN", "-o", str(library),
-                    str(SOURCE / "mpcl.c"), str(SOURCE / "mpcl_selftest.c")], check=True, timeout=120)
-    lib = ctypes.CDLL(str(library))
-    lib.mpcl_test_stream.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.c_size_t,
-                                     ctypes.POINTER(ctypes.c_int64), ctypes.c_size_t, ctypes.POINTER(ctypes.c_int)]
-    lib.mpcl_test_encode.argtypes = [ctypes.POINTER(ctypes.c_int64), ctypes.c_size_t, ctypes.c_char_p,
-                                     ctypes.c_size_t]
-    lib.mpcl_error_name.restype = ctypes.c_char_p
-    return lib
+def c_codec() -> CCodec:
+    if not available():
+        pytest.skip("no C compiler or no firmware sources")
+    return CCodec()
 
 
-def c_read(lib, stream: bytes, chunk: int) -> tuple[list[list[int]], str | None]:
-    """The C reader's frames (flattened) and the rule that ended the stream (None: it did not fail)."""
-    out, error = (ctypes.c_int64 * 8192)(), ctypes.c_int()
-    written = lib.mpcl_test_stream(stream, len(stream), chunk, out, len(out), ctypes.byref(error))
-    assert written >= 0
-    frames, k = [], 0
-    while k < written:
-        frames.append([int(v) for v in out[k + 1:k + 1 + out[k]]])
-        k += 1 + out[k]
-    name = lib.mpcl_error_name(error.value).decode()
-    assert name == ERROR_NAMES[-error.value]
-    return frames, None if name == "ok" else name
-
-
-def as_c_flattens(frame: mp.Frame) -> list[int]:
-    """motoplus_vectors.flatten as the C side writes it: a u64 time past 2^63 wraps in an int64."""
-    values = motoplus_vectors.flatten(frame)
-    if isinstance(frame.body, mp.State) and values[-1] >= 2 ** 63:
-        values[-1] -= 2 ** 64
-    return values
-
-
-def same_frame(c_values: list[int], frame: mp.Frame) -> bool:
-    if isinstance(frame.body, mp.Fault):  # Python keeps the text decoded, invalid UTF-8 replaced
-        raw = bytes(c_values[5:])
-        return (c_values[:4] == as_c_flattens(frame)[:4] and c_values[4] == len(raw)
-                and raw.decode("utf-8", "replace") == frame.body.text)
-    return c_values == as_c_flattens(frame)
+def test_both_codecs_name_the_rules_alike(c_codec) -> None:
+    assert [c_codec.lib.mpcl_error_name(-k).decode() for k in range(len(ERROR_NAMES))] == ERROR_NAMES
 
 
 @settings(max_examples=300, deadline=None)
@@ -113,24 +75,10 @@ def same_frame(c_values: list[int], frame: mp.Frame) -> bool:
 def test_frames_encoded_by_either_side_decode_the_same_on_the_other(c_codec, frames, chunk) -> None:
     frames = [mp.Frame(seq, ack, body) for seq, ack, body in frames]
     stream = b"".join(mp.encode(f) for f in frames)
-    decoded, error = c_read(c_codec, stream, chunk)
+    decoded, error = c_codec.read(stream, chunk)
     assert error is None and len(decoded) == len(frames)
     assert all(same_frame(c, f) for c, f in zip(decoded, frames))
-    for frame in frames:
-        values = as_c_flattens(frame)
-        out = ctypes.create_string_buffer(2048)
-        n = c_codec.mpcl_test_encode((ctypes.c_int64 * len(values))(*values), len(values), out, len(out))
-        assert out.raw[:n] == mp.encode(frame)
-
-
-def python_read(stream: bytes) -> tuple[list[mp.Frame], str | None]:
-    reader, frames = mp.FrameReader(), []
-    try:
-        for i in range(len(stream)):  # byte by byte: the frames before an error count too
-            frames += reader.feed(stream[i:i + 1])
-    except mp.MotoPlusProtocolError as exc:
-        return frames, exc.rule
-    return frames, None
+    assert all(c_codec.encode(frame) == mp.encode(frame) for frame in frames)
 
 
 FLIPS = st.lists(st.tuples(st.integers(0, 10_000), st.integers(0, 255)), max_size=3)
@@ -154,8 +102,5 @@ def test_a_mutated_stream_ends_with_the_same_frames_and_rule_on_both_sides(c_cod
     inner = inner[:len(inner) + resize] if resize < 0 else inner + bytes(resize)
     inner += struct.pack("<I", zlib.crc32(inner)) if reseal or resize else good[-4:]
     stream = struct.pack("<I", len(inner)) + bytes(inner) + good + tail
-    expected_frames, expected_rule = python_read(stream)
-    frames, rule = c_read(c_codec, stream, chunk)
+    rule = same_outcome(c_codec, stream, chunk)  # raises when they differ
     event(f"ended with {rule}")  # --hypothesis-show-statistics: which rules the mutations reach
-    assert rule == expected_rule
-    assert len(frames) == len(expected_frames) and all(map(same_frame, frames, expected_frames))

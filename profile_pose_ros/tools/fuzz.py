@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import zlib
 from dataclasses import dataclass
 from typing import Callable
 
@@ -144,6 +145,25 @@ def _parameter_updates(data: bytes) -> None:
     Gains(chunks[0], chunks[min(1, len(chunks) - 1)], chunks[-1]).check()
 
 
+def _motoplus_c(codec) -> Callable[[bytes], None]:
+    """The controller's C codec against the Python one: the same frames and the same rule, or unexpected.
+    The first byte's low bit asks for the first frame to be resealed (a valid checksum over whatever the
+    mutations left), without which nearly every mutation stops at the checksum and the deeper checks
+    (magic, version, type, sizes, frame, limits, text) would never be compared."""
+    from .c_codec import same_outcome
+
+    def run(data: bytes) -> None:
+        stream = bytearray(data[1:])
+        if data[:1] and data[0] & 1 and len(stream) >= 4:
+            length = int.from_bytes(stream[:4], "little")
+            if 4 <= length <= len(stream) - 4:
+                stream[length:length + 4] = zlib.crc32(stream[4:length]).to_bytes(4, "little")
+        rule = same_outcome(codec, bytes(stream))
+        if rule is not None:
+            raise mp.MotoPlusProtocolError(f"both refuse it ({rule})", rule)
+    return run
+
+
 def targets() -> list[Target]:
     rng = np.random.default_rng(0)
     z = rng.uniform(0.3, 0.6, 64)
@@ -171,7 +191,18 @@ def targets() -> list[Target]:
                decode_twist_cdr, (CdrFormatError,)),
         Target("gauge files", gauge, _gauge_yaml, (GaugeError,)),
         Target("parameter updates", params, _parameter_updates, (ValueError,)),
-    ]
+    ] + _c_targets(motoplus)
+
+
+def _c_targets(motoplus: list[bytes]) -> list[Target]:
+    """The controller-side C codec (firmware/motoplus) when there is a compiler and a source checkout."""
+    from . import c_codec
+
+    if not c_codec.available():
+        return []
+    seeds = [bytes([flag]) + frame for frame in motoplus for flag in (0, 1)]
+    return [Target("MotoPlus frames, C codec = Python", seeds, _motoplus_c(c_codec.CCodec()),
+                   (mp.MotoPlusProtocolError,))]
 
 
 def fuzz(count: int, seed: int = 1, names: list[str] | None = None) -> list[dict]:

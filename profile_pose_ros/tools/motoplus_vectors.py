@@ -125,8 +125,9 @@ def _malformed() -> list[tuple[str, bytes]]:
     return [(rule, what, good + stream) for rule, what, stream in cases]
 
 
-def _outcome(stream: bytes) -> tuple[list[mp.Frame], str | None]:
-    """What the Python reader makes of `stream` fed byte by byte (so that frames before an error count)."""
+def python_read(stream: bytes) -> tuple[list[mp.Frame], str | None]:
+    """The Python reader's frames and error rule (None: no error) for `stream`, fed byte by byte: frames
+    before an error count, as they do in the C reader (FrameReader.feed raises before returning them)."""
     reader, frames = mp.FrameReader(), []
     try:
         for i in range(len(stream)):
@@ -137,7 +138,7 @@ def _outcome(stream: bytes) -> tuple[list[mp.Frame], str | None]:
 
 
 def _stream_lines(title: str, stream: bytes, expected_error: str | None = None) -> list[str]:
-    frames, error = _outcome(stream)
+    frames, error = python_read(stream)
     if error != expected_error:  # a vector that tests another rule than its title says is worthless
         raise AssertionError(f"{title}: the Python codec says {error}, expected {expected_error}")
     return [f"# {title}", f"stream {stream.hex()}", *(f"frame {' '.join(map(str, flatten(f)))}" for f in frames),
