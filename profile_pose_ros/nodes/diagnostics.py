@@ -13,6 +13,9 @@ def diagnostic_array(node, what: str, hardware_id: str, level: int, message: str
     name = f"{node.get_fully_qualified_name().lstrip('/')}: {what}"
     stamp = node.get_clock().now().to_msg()
     status = DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id)
+    scheduling = getattr(node, "scheduling", None)  # run.py: a loop node's realtime_priority outcome
+    if scheduling is not None:
+        values = {**values, "scheduling": scheduling}
     status.values = [KeyValue(key=str(k), value=_text(v)) for k, v in values.items()]
     array = DiagnosticArray()
     array.header.stamp = stamp

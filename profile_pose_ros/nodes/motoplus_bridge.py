@@ -32,6 +32,7 @@ from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .messages import fill_pose, twist_stamped
 from .parameters import Param, declare_all, updated
+from .realtime import REALTIME_PARAMETERS
 from .run import run_node
 
 NODE_NAME = "motoplus_bridge"
@@ -60,6 +61,7 @@ PARAMETERS = [
     Param("base_frame", "base", "frame_id of robot_state."),
     Param("arm_on_start", False, "Arm (send HELLO) as soon as connected, without ~/start."),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
+    *REALTIME_PARAMETERS,
 ]
 
 

@@ -25,6 +25,7 @@ from .diagnostics import OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .messages import rotation_translation
 from .parameters import Param, declare_all, updated
+from .realtime import REALTIME_PARAMETERS
 from .run import run_node
 
 NODE_NAME = "pd_compensator"
@@ -54,6 +55,7 @@ PARAMETERS = [
           "(Hz). Staleness itself is noticed when the newest pose turns max_pose_age old.", 1.0, 1000.0,
           read_only=True),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
+    *REALTIME_PARAMETERS,
 ]
 
 _GAINS = ("kp", "kd", "max_speed")

@@ -35,6 +35,7 @@ from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .messages import PoseMessagePair, cdr_stamp_ns
 from .parameters import Param, declare_all, updated
+from .realtime import REALTIME_PARAMETERS
 from .run import run_node
 
 NODE_NAME = "pose_estimator"
@@ -77,6 +78,7 @@ PARAMETERS = [
           "against this node's clock): a node that fell behind catches up on fresh profiles instead of working "
           "through ones the compensator would refuse as stale (its max_pose_age). 0 never skips: a bag replayed "
           "into a live node carries the recording's stamps. The cell files set 0.05.", 0.0, 10.0),
+    *REALTIME_PARAMETERS,
 ]
 
 _OPTION_OF_PARAMETER = {

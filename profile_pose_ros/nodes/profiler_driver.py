@@ -23,6 +23,7 @@ from ..devices.profiler_link import STREAMING, LinkSettings, ProfilerLink
 from ..devices.trigger_link import TriggerLink
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .parameters import Param, declare_all
+from .realtime import REALTIME_PARAMETERS
 from .run import run_node
 
 NODE_NAME = "profiler_driver"
@@ -57,6 +58,7 @@ PARAMETERS = [
           read_only=True),
     Param("reconnect_max", 0.5, "Longest reconnect delay (s).", 0.01, 60.0, read_only=True),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
+    *REALTIME_PARAMETERS,
 ]
 
 

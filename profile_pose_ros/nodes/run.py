@@ -13,6 +13,8 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from .realtime import realtime_from_parameters
+
 
 SHUTDOWN_GRACE_S = 10.0  # from the stop request to the process gone, whatever hangs
 
@@ -56,6 +58,11 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
     # tens of profiles at 1 kHz; what the node allocates from now on is collected as usual.
     gc.collect()
     gc.freeze()
+    scheduling = realtime_from_parameters(node)  # last: the DDS and device threads exist by now
+    if scheduling is not None:
+        node.scheduling = scheduling  # reported in the node's /diagnostics (diagnostics.py)
+        log = node.get_logger().warning if "refused" in scheduling else node.get_logger().info
+        log(f"scheduling: {scheduling}")
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:

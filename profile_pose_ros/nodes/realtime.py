@@ -1,0 +1,48 @@
+"""Real-time scheduling for a loop node, asked for by parameter.
+
+On a 2-core cell PC the profile → pose → correction → increment chain shares the cores with everything
+else; under the normal scheduler a profile that arrives while another process runs waits for its time
+slice, which is what the loop's p99 latency is made of. With `realtime_priority` > 0 every thread of
+the node's process (the spin loop, the DDS receive threads, the bridge's socket thread) runs SCHED_FIFO
+at that priority, so a message that arrives preempts ordinary work at once. The threads block in waits
+between messages, and the kernel's RT throttling (sched_rt_runtime_us) keeps 5 % of each core for the
+rest even if one did not. It needs CAP_SYS_NICE or an rtprio limit (e.g. `@robot - rtprio 60` in
+/etc/security/limits.conf); refused, the node runs on under the normal scheduler and says so.
+"""
+from __future__ import annotations
+
+import os
+
+from .parameters import Param
+
+REALTIME_PARAMETERS = [
+    Param("realtime_priority", 0, "SCHED_FIFO priority (1-98) for every thread of this node's process once it is "
+          "up; 0: the normal scheduler. Needs CAP_SYS_NICE or an rtprio limit; if refused the node runs on and "
+          "its diagnostics say so (docs/performance.md).", 0, 98, read_only=True),
+]
+
+
+def set_realtime(priority: int) -> str:
+    """Every current thread of this process to SCHED_FIFO `priority` (threads started later by them
+    inherit it); a description of the outcome for the log and the diagnostics."""
+    if priority <= 0:
+        return "normal scheduler"
+    threads = sorted(int(tid) for tid in os.listdir("/proc/self/task"))
+    try:
+        for tid in threads:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+    except (PermissionError, OSError) as exc:
+        for tid in threads:  # all or none: half the threads real-time would only reorder the waits
+            try:
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            except OSError:
+                pass
+        return f"normal scheduler: SCHED_FIFO {priority} refused ({exc.strerror}; needs CAP_SYS_NICE or an rtprio limit)"
+    return f"SCHED_FIFO {priority} on {len(threads)} threads"
+
+
+def realtime_from_parameters(node) -> str | None:
+    """Apply the node's `realtime_priority` if it declares one; the outcome, or None if it does not."""
+    if not node.has_parameter("realtime_priority"):
+        return None
+    return set_realtime(int(node.get_parameter("realtime_priority").value))
