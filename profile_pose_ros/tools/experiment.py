@@ -80,11 +80,13 @@ def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.nd
 class Experiment:
     def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0,
                  compensator: dict | None = None, refine_model: str = "dense", profile_rate_hz: float | None = None,
-                 bag: Path | None = None, gauge_file: str = "", estimator: dict | None = None) -> None:
+                 bag: Path | None = None, gauge_file: str = "", estimator: dict | None = None,
+                 realtime_priority: int = 0) -> None:
         """rate_hz: the controller's (83.333 or 250), which also triggers the profiler unless
         profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there;
         gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one);
-        estimator, compensator: parameters for those nodes beyond the defaults."""
+        estimator, compensator: parameters for those nodes beyond the defaults; realtime_priority: the four
+        loop nodes' (nodes/realtime.py; the simulator and the recorder stay under the normal scheduler)."""
         from geometry_msgs.msg import PoseStamped
 
         self.graph, self.rate_hz = graph, rate_hz
@@ -96,7 +98,9 @@ class Experiment:
         sim = {"profiler_port": profiler_port, "mcu_port": mcu_port, "robot_port": robot_port,
                "control_period": period, "noise_std": noise_std, "seed": seed, "diagnostics_period": 0.5}
         gauge = {"gauge_file": gauge_file} if gauge_file else {}
-        driver = {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}", "diagnostics_period": 0.5}
+        loop = {"realtime_priority": realtime_priority} if realtime_priority else {}
+        driver = {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}", "diagnostics_period": 0.5,
+                  **loop}
         if profile_rate_hz:
             sim.update(profiler_trigger="clock", trigger_rate=profile_rate_hz, mcu_baudrate=2_000_000)
             driver.update(baudrate=2_000_000)
@@ -104,9 +108,9 @@ class Experiment:
         graph.start("profiler_driver", driver)
         # every pose counts in the step metrics, late or not: no max_profile_age here (the soak sets it)
         graph.start("pose_estimator", {"diagnostics_period": 0.5, "refine_model": refine_model, **gauge,
-                                        **(estimator or {})})
-        graph.start("pd_compensator", {"diagnostics_period": 0.5, **(compensator or {})})
-        graph.start("motoplus_bridge", {"port": robot_port, "period": period, "diagnostics_period": 0.5})
+                                        **(estimator or {}), **loop})
+        graph.start("pd_compensator", {"diagnostics_period": 0.5, **(compensator or {}), **loop})
+        graph.start("motoplus_bridge", {"port": robot_port, "period": period, "diagnostics_period": 0.5, **loop})
         node = graph.node
         self.poses: list[tuple[float, np.ndarray]] = []
         self.truth: list[tuple[float, np.ndarray]] = []
