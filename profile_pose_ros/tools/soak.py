@@ -2,8 +2,8 @@
 rate by default), each node its own process, reporting per interval: profiles triggered and poses
 delivered to the compensator, trigger->pose and trigger->increment latency p99 (as the nodes time them:
 the worst diagnostics window's), resident memory and CPU share of every process, and every /diagnostics
-status that was not OK. Once the loop is closed this client takes nothing at the loop's rate (only diagnostics), so
-the graph has the machine to itself.
+status that was not OK. Once the loop is closed this client takes nothing at the loop's rate (only
+diagnostics), so the graph has the machine to itself.
 
 The reference steps 0.5 mm back and forth every 10 s so the loop works all along. Verdict: no process
 died, >= 99.9 % of the triggered profiles became poses the compensator used, and no process grew by more
@@ -78,11 +78,19 @@ class Soak:
                 out[name] = float("nan")
         return out
 
-    def _settled_counters(self) -> dict:
+    def _settled_counters(self, timeout: float = 15.0) -> dict:
         """Counters once every node has reported after the last trigger: with the trigger clock paused, the
-        nodes' reports (every 0.5 s, each at its own phase) all count the same profiles."""
+        nodes' reports (every 0.5 s, each at its own phase) all count the same profiles. At least 1.5 s,
+        then until two readings a second apart agree: a node starved of CPU (the simulator, when the loop
+        nodes run real-time) reports late, and a stale count would skew every stage's total."""
         self.exp.wait(1.5)
-        return self.counters()
+        deadline, counts = time.monotonic() + timeout, self.counters()
+        while time.monotonic() < deadline:
+            self.exp.wait(1.0)
+            counts, before = self.counters(), counts
+            if counts == before:
+                break
+        return counts
 
     def _clock(self, running: bool) -> None:
         self.graph.set_parameters("sim_cell", {"trigger_rate": self.rate_hz if running else 0.0})
