@@ -10,7 +10,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from profile_pose_ros.bags.reader import typestore
 from profile_pose_ros.core.pose_cdr import (CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr,
-                                            decode_twist_cdr, encode_twist_cdr)
+                                            decode_twist_cdr, encode_pose_cdr, encode_twist_cdr)
 from profile_pose_ros.core.rotation import so3_exp
 from profile_pose_ros.nodes.messages import PoseMessagePair, twist_stamped
 
@@ -38,6 +38,8 @@ def test_serialized_poses_are_what_rclpy_would_send(values, frame_id, sec, nanos
         ours, theirs = getattr(serialized, name), serialize_message(getattr(messages, name))
         assert len(ours) == len(theirs)
         assert ours == padding_zeroed(theirs, msgtype) == padding_zeroed(ours, msgtype)
+    # the bridge's robot_state: a PoseStamped on its own
+    assert encode_pose_cdr(rotation, translation, sec * 1_000_000_000 + nanosec, frame_id) == serialized.pose
 
 
 def test_a_serialized_pose_reads_back_as_the_message() -> None:

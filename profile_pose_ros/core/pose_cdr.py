@@ -1,6 +1,6 @@
 """The loop's small messages serialized and read directly (little-endian CDR), without rclpy's Python
 message objects: the estimator's PoseStamped and PoseWithCovarianceStamped out, the compensator's pose in
-and TwistStamped correction out, the bridge's correction in.
+and TwistStamped correction out, the bridge's correction in and its robot_state and increments out.
 
 Publishing the estimator's two poses as rclpy messages cost ~70 us a profile on 2026-12-02, ~45 us of it
 rclpy converting the Python objects (the 36-value covariance above all); handed bytes, rclpy only writes
@@ -66,6 +66,15 @@ def encode_twist_cdr(values, stamp_ns: int, frame_id: str) -> bytes:
     return stamped(_header(frame_id), *divmod(stamp_ns, 1_000_000_000)) + _TWIST.pack(*(float(v) for v in values[:6]))
 
 
+def _pose_body(rotation: np.ndarray, translation: np.ndarray) -> bytes:
+    return _POSE.pack(*np.asarray(translation, dtype=float).tolist(), *quaternion_xyzw(rotation).tolist())
+
+
+def encode_pose_cdr(rotation: np.ndarray, translation: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
+    """A serialized PoseStamped (the bytes SerializedPosePair.pose holds): the bridge's robot_state."""
+    return stamped(_header(frame_id), *divmod(stamp_ns, 1_000_000_000)) + _pose_body(rotation, translation)
+
+
 def decode_twist_cdr(data: bytes) -> tuple[int, str, np.ndarray]:
     """A serialized TwistStamped -> (stamp ns, frame_id, [vx vy vz wx wy wz])."""
     stamp_ns, frame_id, at = _read_header(data)
@@ -84,6 +93,6 @@ class SerializedPosePair:
     def fill(self, rotation: np.ndarray, translation: np.ndarray, covariance: np.ndarray, stamp_sec: int,
              stamp_nanosec: int, frame_id: str) -> None:
         head = stamped(_header(frame_id), stamp_sec, stamp_nanosec)
-        pose = _POSE.pack(*np.asarray(translation, dtype=float).tolist(), *quaternion_xyzw(rotation).tolist())
+        pose = _pose_body(rotation, translation)
         self.pose = head + pose
         self.with_covariance = head + pose + np.ascontiguousarray(covariance, dtype="<f8").reshape(36).tobytes()

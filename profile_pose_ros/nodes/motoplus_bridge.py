@@ -20,17 +20,15 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, TwistStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.time import Time
 from std_srvs.srv import Trigger
 
 from ..core import motoplus_protocol as mp
 from ..core.latency_window import LatencyWindow
-from ..core.pose_cdr import CdrFormatError, decode_twist_cdr
+from ..core.pose_cdr import CdrFormatError, decode_twist_cdr, encode_pose_cdr, encode_twist_cdr
 from ..core.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
-from .messages import fill_pose, twist_stamped
 from .parameters import Param, declare_all, updated
 from .realtime import REALTIME_PARAMETERS
 from .run import run_node
@@ -172,17 +170,13 @@ class MotoPlusBridgeNode(Node):
         trigger time of the newest correction in it."""
         with self._lock:
             sent, self._sent = self._sent, []
-        for stamp_ns, units in sent:
-            self.increment_pub.publish(twist_stamped(mp.units_to_metres(units), Time(nanoseconds=stamp_ns).to_msg(),
-                                                     self.values["base_frame"]))
+        for stamp_ns, units in sent:  # serialized here (core/pose_cdr.py): 250 a second at the 4 ms clock
+            self.increment_pub.publish(encode_twist_cdr(mp.units_to_metres(units), stamp_ns, self.values["base_frame"]))
 
     def _on_state(self, state: mp.State, host_time: float) -> None:
         pose = np.array(mp.units_to_metres(state.pose))
-        msg = PoseStamped()
-        msg.header.stamp = Time(nanoseconds=int(host_time * 1e9)).to_msg()
-        msg.header.frame_id = self.values["base_frame"]
-        fill_pose(msg.pose, so3_exp(pose[3:]), pose[:3])
-        self.state_pub.publish(msg)
+        self.state_pub.publish(encode_pose_cdr(so3_exp(pose[3:]), pose[:3], int(host_time * 1e9),
+                                               self.values["base_frame"]))
 
     def pump(self, timeout_sec: float = 0.0) -> int:
         """Handle queued corrections and sent increments (see fast_input.py); spin() or a test harness calls this."""
