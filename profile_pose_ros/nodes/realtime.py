@@ -31,7 +31,7 @@ def set_realtime(priority: int) -> str:
     try:
         for tid in threads:
             os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-    except (PermissionError, OSError) as exc:
+    except OSError as exc:  # EPERM without CAP_SYS_NICE or an rtprio limit
         for tid in threads:  # all or none: half the threads real-time would only reorder the waits
             try:
                 os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))

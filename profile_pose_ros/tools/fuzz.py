@@ -26,6 +26,8 @@ from ..core.profile_cloud import Field, ProfileFormatError, decode_profile, enco
 from ..core.profiler_protocol import FrameDecoder, ProfilerProtocolError, encode_frame
 from ..core.trigger_protocol import TriggerLineError, format_trigger, parse_line
 from ..resources import DEFAULT_GAUGE, config_path
+from . import c_codec
+from .c_codec import same_outcome
 
 
 @dataclass
@@ -150,7 +152,6 @@ def _motoplus_c(codec) -> Callable[[bytes], None]:
     The first byte's low bit asks for the first frame to be resealed (a valid checksum over whatever the
     mutations left), without which nearly every mutation stops at the checksum and the deeper checks
     (magic, version, type, sizes, frame, limits, text) would never be compared."""
-    from .c_codec import same_outcome
 
     def run(data: bytes) -> None:
         stream = bytearray(data[1:])
@@ -196,8 +197,6 @@ def targets() -> list[Target]:
 
 def _c_targets(motoplus: list[bytes]) -> list[Target]:
     """The controller-side C codec (firmware/motoplus) when there is a compiler and a source checkout."""
-    from . import c_codec
-
     if not c_codec.available():
         return []
     seeds = [bytes([flag]) + frame for frame in motoplus for flag in (0, 1)]

@@ -28,6 +28,11 @@ MODULES = {
 CLIENT_CPU = "(this client)"  # Graph.cpu_seconds' key for the measuring process itself
 
 
+def cpu_percent(before: dict[str, float], after: dict[str, float], wall_s: float) -> dict[str, float]:
+    """Each process's share of one core (%) between two Graph.cpu_seconds() readings wall_s apart."""
+    return {name: 100.0 * (used - before[name]) / wall_s for name, used in after.items() if name in before}
+
+
 def free_port() -> int:
     """A TCP port free on 127.0.0.1 right now (the OS picks it)."""
     with socket.socket() as s:

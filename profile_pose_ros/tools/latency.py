@@ -23,7 +23,7 @@ import numpy as np
 
 from ..core.latency_window import pooled
 from .experiment import Experiment
-from .graph import Graph
+from .graph import Graph, cpu_percent
 from .report import run_dir, summary, table, write_json
 
 STAGES = (("profile", "profile", "sensor_msgs/msg/PointCloud2"),
@@ -102,7 +102,7 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
             exp.wait(0.5)               # leave the compensator sending zeros
         recording[0] = reports.recording = False
         cpu = graph.cpu_seconds()
-        cpu_percent = {name: 100.0 * (cpu[name] - cpu_before[name]) / seconds for name in cpu}
+        cpu_share = cpu_percent(cpu_before, cpu, seconds)
         diagnostics = {k: dict(v) for k, v in exp.diagnostics.items()}
         exp.bridge(arm=False)
     finally:
@@ -110,7 +110,7 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
     stages = ({name: summary(v) for name, v in latencies.items()} if observer == "dds"
               else reports.summaries())
     return {"rate_hz": rate_hz, "control_hz": control_hz, "seconds": seconds, "refine_model": refine_model,
-            "observer": observer, "stages_ms": stages, "cpu_percent": cpu_percent, "diagnostics": diagnostics}
+            "observer": observer, "stages_ms": stages, "cpu_percent": cpu_share, "diagnostics": diagnostics}
 
 
 def print_table(results: list[dict]) -> None:

@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from .experiment import Experiment
-from .graph import Graph
+from .graph import Graph, cpu_percent
 from .latency import NodeReports
 from .processes import memory_kib
 from .report import run_dir, table, write_json
@@ -117,12 +117,12 @@ class Soak:
                     next_reference += REFERENCE_EVERY_S
             counts, cpu = self.counters(), self.graph.cpu_seconds()
             delta = {k: counts[k] - counts_before[k] for k in counts}
-            cpu_percent = {k: 100.0 * (cpu[k] - cpu_before[k]) / (end - before) for k in cpu if k in cpu_before}
+            cpu_share = cpu_percent(cpu_before, cpu, end - before)
             latency = self.latency.summaries(clear=True)
             row = {"t_s": time.monotonic() - start, **delta,
                    "pose_p99_ms": latency["pose"].get("p99", float("nan")),
                    "increment_p99_ms": latency["increment sent"].get("p99", float("nan")),
-                   "latency_ms": latency, "rss_mb": self.memory_mb(), "cpu_percent": cpu_percent}
+                   "latency_ms": latency, "rss_mb": self.memory_mb(), "cpu_percent": cpu_share}
             intervals.append(row)
             log(f"  {row['t_s']:6.0f} s: {delta['triggered']} triggered, {delta['compensator_poses']} poses used, "
                 f"p99 trigger->pose {row['pose_p99_ms']:.2f} ms, ->increment {row['increment_p99_ms']:.2f} ms",
