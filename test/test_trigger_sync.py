@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from profile_pose_ros.core.clock_sync import ClockMap, TriggerMatcher, lower_envelope_slope
+from profile_pose_ros.core.clock_sync import ClockMap, SampleWindow, TriggerMatcher, chunk_minima, lower_envelope_slope
 from profile_pose_ros.core.trigger_protocol import (MICROS_WRAP, Ack, McuError, MicrosUnwrapper, Pong, Ready, Trigger,
                                                     TriggerLineError, format_trigger, parse_line)
 
@@ -49,6 +49,31 @@ def simulated_samples(rate_hz: float, seconds: float, drift_ppm: float, seed: in
     device = 4000.0 + (host - host[0]) * (1 + drift_ppm * 1e-6)
     arrival = host + 20e-6 + rng.exponential(150e-6, len(host))  # a floor plus scheduling jitter
     return device, arrival, host
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 30), st.integers(0, 4)), min_size=1, max_size=200))
+def test_chunk_minima_is_the_sorted_pick(pairs: list[tuple[int, int]]) -> None:
+    """The O(n) pick is what sorting by (chunk, value) and taking each chunk's first gives."""
+    chunk = np.sort(np.array([c for c, _ in pairs]))
+    values = np.array([v for _, v in pairs], dtype=float)
+    order = np.lexsort((values, chunk))
+    assert np.array_equal(chunk_minima(chunk, values), order[np.r_[True, np.diff(chunk[order]) > 0]])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(0.0, 0.5), max_size=3000), st.floats(0.01, 2.0))
+def test_sample_window_keeps_exactly_the_last_window(steps: list[float], window_s: float) -> None:
+    window, kept = SampleWindow(capacity=4), []
+    device = 0.0
+    for k, step in enumerate(steps):
+        device += step
+        window.append(device, float(k), window_s)
+        kept = [(d, h) for d, h in kept + [(device, float(k))] if device - d <= window_s]
+        if k % 97 == 0 or k == len(steps) - 1:
+            d, h = window.arrays()
+            assert list(zip(d.tolist(), h.tolist())) == kept
+            assert window.span() == kept[-1][0] - kept[0][0]
 
 
 @pytest.mark.parametrize("drift_ppm", [-5000.0, 0.0, 300.0])

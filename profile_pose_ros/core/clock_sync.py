@@ -9,7 +9,7 @@ smallest one, which the link then estimates from PING round trips and subtracts.
 """
 from __future__ import annotations
 
-from collections import OrderedDict, deque
+from collections import OrderedDict
 
 import numpy as np
 
@@ -34,8 +34,58 @@ def lower_envelope_slope(x: np.ndarray, y: np.ndarray) -> float:
     return 0.0
 
 
+def chunk_minima(chunk: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Index of each chunk's smallest value (the earliest on a tie); `chunk` is non-decreasing. O(n):
+    a lexsort did the same in 1.4 ms for 10,000 samples, a third of the refit."""
+    starts = np.flatnonzero(np.r_[True, chunk[1:] != chunk[:-1]])
+    minima = np.minimum.reduceat(values, starts)
+    at_minimum = np.flatnonzero(values == np.repeat(minima, np.diff(np.r_[starts, len(values)])))
+    return at_minimum[np.r_[True, chunk[at_minimum[1:]] != chunk[at_minimum[:-1]]]]
+
+
 def _turns_clockwise(a: tuple[float, float], b: tuple[float, float], c: tuple[float, float]) -> bool:
     return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]) <= 0.0
+
+
+class SampleWindow:
+    """(device, host) samples of the last window_s device seconds, in two numpy arrays. A deque of
+    tuples turned into an array at each refit cost 5-8 ms at 1 kHz (10,000 samples) in the trigger
+    thread, holding the GIL, so the driver's profile thread stalled behind it four times a second."""
+
+    def __init__(self, capacity: int = 1024) -> None:
+        self._data = np.empty((2, capacity))
+        self._start = self._end = 0
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def clear(self) -> None:
+        self._start = self._end = 0
+
+    def append(self, device_s: float, host_s: float, window_s: float) -> None:
+        """Add a sample and drop those more than window_s device seconds older than it."""
+        if self._end == self._data.shape[1]:
+            kept = self._data[:, self._start:self._end]
+            if 2 * kept.shape[1] > self._data.shape[1]:  # more than half full: grow
+                self._data = np.empty((2, 2 * self._data.shape[1]))
+            self._data[:, :kept.shape[1]] = kept.copy()
+            self._start, self._end = 0, kept.shape[1]
+        self._data[0, self._end] = device_s
+        self._data[1, self._end] = host_s
+        self._end += 1
+        device = self._data[0]
+        while device_s - device[self._start] > window_s:
+            self._start += 1
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Views of the device and host times, oldest first (valid until the next append)."""
+        return self._data[0, self._start:self._end], self._data[1, self._start:self._end]
+
+    def last_device(self) -> float:
+        return float(self._data[0, self._end - 1])
+
+    def span(self) -> float:
+        return float(self._data[0, self._end - 1] - self._data[0, self._start]) if len(self) else 0.0
 
 
 class ClockMap:
@@ -53,7 +103,7 @@ class ClockMap:
         self.slope_after_s = slope_after_s  # before this span of samples, assume no drift
         self.converged_after_s = converged_after_s
         self.max_drift = max_drift  # a ceramic resonator is within 0.5 %
-        self._samples: deque[tuple[float, float]] = deque()
+        self._samples = SampleWindow()
         self._ref: tuple[float, float] | None = None
         self._fit: tuple[float, float] | None = None  # (intercept, slope) relative to _ref
         self._fitted_at = -np.inf
@@ -72,7 +122,7 @@ class ClockMap:
     @property
     def span(self) -> float:
         """Device seconds covered by the samples in the window."""
-        return self._samples[-1][0] - self._samples[0][0] if self._samples else 0.0
+        return self._samples.span()
 
     @property
     def converged(self) -> bool:
@@ -82,13 +132,11 @@ class ClockMap:
         if self._ref is None:
             self._ref = (device_s, host_s)
         if self._fit is not None and (host_s < self.to_host(device_s) - self.jump_s
-                                      or device_s < self._ref[0] + self._samples[-1][0] - self.jump_s):
+                                      or device_s < self._ref[0] + self._samples.last_device() - self.jump_s):
             self.reset()  # the device restarted or its clock was set: start over
             self._ref = (device_s, host_s)
         d, h = device_s - self._ref[0], host_s - self._ref[1]
-        self._samples.append((d, h))
-        while self._samples and d - self._samples[0][0] > self.window_s:
-            self._samples.popleft()
+        self._samples.append(d, h, self.window_s)
         if self._fit is None or d - self._fitted_at >= self.refit_s:
             self._refit()
             self._fitted_at = d
@@ -97,15 +145,13 @@ class ClockMap:
             self._fit = (min(intercept, h - slope * d), slope)
 
     def _refit(self) -> None:
-        data = np.asarray(self._samples)
-        d, h = data[:, 0], data[:, 1]
+        d, h = self._samples.arrays()
         span = d[-1] - d[0]
         slope = 1.0
         if span >= self.slope_after_s:  # the envelope through each chunk's least-delayed sample
             residual = h - d
             chunk = np.floor((d - d[0]) / min(CHUNK_S, span / MIN_CHUNKS)).astype(int)
-            order = np.lexsort((residual, chunk))
-            first = order[np.r_[True, np.diff(chunk[order]) > 0]]
+            first = chunk_minima(chunk, residual)
             slope = 1.0 + lower_envelope_slope(d[first], residual[first])
         slope = float(np.clip(slope, 1.0 - self.max_drift, 1.0 + self.max_drift))
         recent = d >= d[-1] - self.recent_s
@@ -120,11 +166,11 @@ class ClockMap:
 
     def residual_stats(self) -> tuple[float, float]:
         """(median, max) of each sample's delay above the envelope, s: the link's latency jitter."""
-        if self._fit is None or not self._samples:
+        if self._fit is None or not len(self._samples):
             return float("nan"), float("nan")
-        data = np.asarray(self._samples)
+        d, h = self._samples.arrays()
         intercept, slope = self._fit
-        above = data[:, 1] - (intercept + slope * data[:, 0])
+        above = h - (intercept + slope * d)
         return float(np.median(above)), float(np.max(above))
 
     @property
