@@ -118,3 +118,28 @@ def test_compiled_trace_equals_the_reference(gauge) -> None:
             np.testing.assert_array_equal(np.isnan(trace_depth_fast(g, rotation, translation, x)),
                                           np.isnan(reference))
             np.testing.assert_allclose(trace_depth_fast(g, rotation, translation, x), reference, rtol=0, atol=1e-12)
+
+
+def test_compiled_shadow_and_range_equal_the_reference(gauge) -> None:
+    """sim_cell's one compiled pass (trace, emitter shadow, measurement range) hides exactly the points
+    the reference hides; the poses are tilted enough that some are shadowed, and a narrow profiler
+    model clips the range."""
+    from profile_pose_ros.core.gauge_design import random_gauge
+    from profile_pose_ros.core.render import visible_depth
+    from profile_pose_ros.core.render_fast import trace_depth_fast, visible_depth_fast
+
+    rng = np.random.default_rng(12)
+    models = [DEFAULT_PROFILER, ProfilerModel(z_near=0.40, z_far=0.47, width_near=0.05, width_far=0.09),
+              ProfilerModel(occlusion=False)]
+    shadowed = clipped = 0
+    for g in [gauge] + [random_gauge(n, rng) for n in (4, 7)]:
+        for _ in range(30):
+            rotation = so3_exp(rng.normal(0, 0.5, 3)) @ np.diag([1.0, -1.0, -1.0])
+            translation = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), 0.45])
+            traced = trace_depth_fast(g, rotation, translation, DEFAULT_PROFILER.x)
+            for model in models:
+                reference = visible_depth(g, rotation, translation, model, trace=trace_depth_fast)
+                np.testing.assert_array_equal(visible_depth_fast(g, rotation, translation, model), reference)
+            shadowed += shadow_mask(DEFAULT_PROFILER.x, traced, DEFAULT_PROFILER.emitter_z).any()
+            clipped += (np.isfinite(traced) & ~models[1].in_range(DEFAULT_PROFILER.x, traced)).any()
+    assert shadowed >= 5 and clipped >= 5

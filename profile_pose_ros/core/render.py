@@ -115,23 +115,34 @@ def shadow_mask(x: np.ndarray, z: np.ndarray, emitter_z: float) -> np.ndarray:
     return hidden
 
 
-def render_profile(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, *,
-                   noise_std: float = 0.0, rng: np.random.Generator | None = None,
-                   spike_fraction: float = 0.0, spike_range: tuple[float, float] = (2e-4, 2e-3),
-                   profiler: ProfilerModel = DEFAULT_PROFILER, trace=None) -> np.ndarray:
-    """(N, 2) array of [x, z] in metres in frame F, NaN where the profiler reports no point.
-
-    Noise is Gaussian on z (the profiler's depth repeatability); spikes replace a fraction of the
-    valid points by z +- U(spike_range), as specular glints do. `trace` replaces trace_depth (sim_cell
-    passes the compiled one of render_fast.py).
-    """
-    if rng is None:
-        rng = np.random.default_rng()
+def visible_depth(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, profiler: ProfilerModel,
+                  trace=None) -> np.ndarray:
+    """Noise-free z of every column the profiler reports (NaN elsewhere): the trace, less what the
+    emitter cannot light and what lies outside the measurement range."""
     x = profiler.x
     z = (trace or trace_depth)(gauge, rotation, translation, x)
     if profiler.occlusion:
         z[shadow_mask(x, z, profiler.emitter_z)] = np.nan
     z[~profiler.in_range(x, z)] = np.nan
+    return z
+
+
+def render_profile(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, *,
+                   noise_std: float = 0.0, rng: np.random.Generator | None = None,
+                   spike_fraction: float = 0.0, spike_range: tuple[float, float] = (2e-4, 2e-3),
+                   profiler: ProfilerModel = DEFAULT_PROFILER, trace=None, depth=None) -> np.ndarray:
+    """(N, 2) array of [x, z] in metres in frame F, NaN where the profiler reports no point.
+
+    Noise is Gaussian on z (the profiler's depth repeatability); spikes replace a fraction of the
+    valid points by z +- U(spike_range), as specular glints do. `trace` replaces trace_depth (the
+    study passes the compiled one of render_fast.py); `depth` replaces visible_depth (sim_cell passes
+    render_fast's, which does all of it in one compiled pass).
+    """
+    if rng is None:
+        rng = np.random.default_rng()
+    x = profiler.x
+    z = depth(gauge, rotation, translation, profiler) if depth is not None else \
+        visible_depth(gauge, rotation, translation, profiler, trace)
     valid = np.isfinite(z)
     if noise_std > 0:
         z[valid] += rng.normal(0.0, noise_std, int(valid.sum()))

@@ -1,27 +1,37 @@
 """The renderer's ray trace compiled with numba, for sim_cell at 1 kHz (the numpy trace in render.py is
-the reference; a test holds the two equal). One loop over rays instead of whole-array passes per face:
-about 20x faster, so the simulated profiler keeps up with its trigger."""
+the reference; tests hold the two equal). One loop over rays instead of whole-array passes per face:
+about 20x faster, so the simulated profiler keeps up with its trigger. `visible_depth_fast` adds the
+emitter's shadow and the measurement range in the same compiled call."""
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
 from .gauge import Gauge
+from .render import ProfilerModel
 
 
 @njit(cache=True, fastmath=False)
-def _trace(origins, direction, normals, offsets, ridge_q, ridge_u, half_w, half_l, base_z):  # pragma: no cover
-    n_rays = origins.shape[0]
+def _trace(x, t, r0, direction, normals, offsets, ridge_q, ridge_u, half_w, half_l, base_z):  # pragma: no cover
+    """Ray i starts at t + x[i] r0. Per face, what does not depend on the ray is computed once:
+    the ray's slope to the face and the face's distance along it as a + x b (3x fewer flops)."""
+    n_rays = x.shape[0]
     n_faces = offsets.shape[0]
+    denom = np.empty(n_faces)
+    at_origin = np.empty(n_faces)
+    per_x = np.empty(n_faces)
+    for k in range(n_faces):
+        denom[k] = normals[k, 0] * direction[0] + normals[k, 1] * direction[1] + normals[k, 2] * direction[2]
+        at_origin[k] = offsets[k] - (normals[k, 0] * t[0] + normals[k, 1] * t[1] + normals[k, 2] * t[2])
+        per_x[k] = normals[k, 0] * r0[0] + normals[k, 1] * r0[1] + normals[k, 2] * r0[2]
     out = np.full(n_rays, np.nan)
     for i in range(n_rays):
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        ox, oy, oz = t[0] + x[i] * r0[0], t[1] + x[i] * r0[1], t[2] + x[i] * r0[2]
         best = np.inf
         for k in range(n_faces):
-            denom = normals[k, 0] * direction[0] + normals[k, 1] * direction[1] + normals[k, 2] * direction[2]
-            if denom >= 0:
+            if denom[k] >= 0:
                 continue
-            s = (offsets[k] - (normals[k, 0] * ox + normals[k, 1] * oy + normals[k, 2] * oz)) / denom
+            s = (at_origin[k] - x[i] * per_x[k]) / denom[k]
             if not (s > 0 and s < best):
                 continue
             hx = ox + s * direction[0]
@@ -39,7 +49,7 @@ def _trace(origins, direction, normals, offsets, ridge_q, ridge_u, half_w, half_
             for sign in (-1.0, 1.0):
                 if direction[axis] * sign >= 0:
                     continue
-                s = (sign * bound - origins[i, axis]) / direction[axis]
+                s = (sign * bound - (ox if axis == 0 else oy)) / direction[axis]
                 if not (s > 0 and s < best):
                     continue
                 hx = ox + s * direction[0]
@@ -61,11 +71,48 @@ def _trace(origins, direction, normals, offsets, ridge_q, ridge_u, half_w, half_
     return out
 
 
+@njit(cache=True, fastmath=False)
+def _shadow_and_range(x, z, emitter_z, z_near, z_far, half_near, half_slope):  # pragma: no cover
+    """render.shadow_mask and ProfilerModel.in_range, in place, with the same arithmetic; x ascending."""
+    n = x.shape[0]
+    angle = np.arctan2(x, z - emitter_z)
+    first_right = 0
+    while first_right < n and x[first_right] < 0:
+        first_right += 1
+    for start, stop, step, sign in ((first_right, n, 1, 1.0), (first_right - 1, -1, -1, -1.0)):
+        running = -np.inf
+        for i in range(start, stop, step):
+            if not np.isfinite(angle[i]):
+                continue
+            a = sign * angle[i]
+            running = max(running, a)
+            if a < running - 1e-12:
+                z[i] = np.nan
+    for i in range(n):
+        zi = z[i]
+        if not (zi >= z_near and zi <= z_far and abs(x[i]) <= half_near + half_slope * (zi - z_near)):
+            z[i] = np.nan
+    return z
+
+
+def visible_depth_fast(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray,
+                       profiler: ProfilerModel) -> np.ndarray:
+    """Same contract as render.visible_depth (which stays the reference)."""
+    x = profiler.x
+    z = trace_depth_fast(gauge, rotation, translation, x)
+    if not profiler.occlusion:
+        z[~profiler.in_range(x, z)] = np.nan
+        return z
+    half_slope = (profiler.width_far - profiler.width_near) / (2.0 * (profiler.z_far - profiler.z_near))
+    return _shadow_and_range(x, z, profiler.emitter_z, profiler.z_near, profiler.z_far,
+                             0.5 * profiler.width_near, half_slope)
+
+
 def trace_depth_fast(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Same contract as render.trace_depth."""
     rotation = np.asarray(rotation, dtype=float)
-    origins = np.asarray(translation, dtype=float)[None, :] + x[:, None] * rotation[:, 0][None, :]
-    return _trace(np.ascontiguousarray(origins), np.ascontiguousarray(rotation[:, 2]),
+    return _trace(np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(translation, dtype=float),
+                  np.ascontiguousarray(rotation[:, 0]), np.ascontiguousarray(rotation[:, 2]),
                   np.ascontiguousarray(gauge.normals, dtype=float), np.ascontiguousarray(gauge.offsets, dtype=float),
                   np.ascontiguousarray(gauge.q[:, 0], dtype=float), np.ascontiguousarray(gauge.u, dtype=float),
                   gauge.width / 2, gauge.length / 2, float(gauge.base_z))

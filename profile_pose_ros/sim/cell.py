@@ -16,7 +16,7 @@ import numpy as np
 
 from ..core.gauge import Gauge
 from ..core.render import DEFAULT_PROFILER, ProfilerModel, render_profile
-from ..core.render_fast import trace_depth_fast
+from ..core.render_fast import visible_depth_fast
 from .motion import MotionSource
 from .profiler_device import ProfilerDevice
 from .trigger_mcu import TriggerMcu
@@ -69,7 +69,7 @@ class SimCell:
     def start(self) -> "SimCell":
         # compile (or load) the ray trace now: the first render would otherwise stall the first cycles
         rotation, translation = self.motion.pose_at(0.0)
-        render_profile(self.gauge, rotation, translation, profiler=self.model, trace=trace_depth_fast)
+        render_profile(self.gauge, rotation, translation, profiler=self.model, depth=visible_depth_fast)
         self.profiler.start()
         self.mcu.start()
         return self
@@ -86,7 +86,7 @@ class SimCell:
             device_us = (mono - self.profiler.boot_ns) // 1000
             points = render_profile(self.gauge, rotation, translation, noise_std=self.noise.noise_std,
                                     spike_fraction=self.noise.spike_fraction, rng=self.rng, profiler=self.model,
-                                    trace=trace_depth_fast)
+                                    depth=visible_depth_fast)
             status = self.profiler.trigger(device_us, self.model.x_start, self.model.x_pitch, points[:, 1],
                                            final=final)
             truth = Truth(self.profiler.trigger_count, seq, wall, rotation, translation, status)
