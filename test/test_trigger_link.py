@@ -68,3 +68,27 @@ def test_a_reset_we_asked_for_is_not_a_restart_but_a_reboot_is(rig) -> None:
     assert resyncs.reasons == [resyncs.reasons[0]]
     mcus[0].reboot()  # later: a reboot (power, watchdog)
     assert resyncs.wait_for(2) and "restarted" in resyncs.reasons[1]
+
+
+def test_the_simulated_uart_waits_out_a_line_without_returning_early() -> None:
+    """precise_wait: never before the moment, and on Linux the waiting thread's timer slack is fine
+    (so the sleep, not a spin, covers all but the last tens of microseconds)."""
+    import ctypes
+    import sys
+
+    from profile_pose_ros.sim.precise_wait import FINE_SLACK_NS, wait_until
+
+    results: list[tuple[float, int]] = []
+
+    def waiter() -> None:
+        for delay in (0.0, 5e-5, 3e-4, 2e-3):
+            due = time.monotonic() + delay
+            wait_until(due)
+            results.append((time.monotonic() - due, ctypes.CDLL(None).prctl(30, 0, 0, 0, 0)))  # PR_GET_TIMERSLACK
+
+    thread = threading.Thread(target=waiter)
+    thread.start()
+    thread.join()
+    assert len(results) == 4 and all(late >= 0.0 for late, _ in results)
+    if sys.platform == "linux":
+        assert all(slack == FINE_SLACK_NS for _, slack in results)

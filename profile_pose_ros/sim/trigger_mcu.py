@@ -16,9 +16,9 @@ import numpy as np
 
 from ..core.trigger_protocol import COMMANDS, MICROS_WRAP, format_trigger
 from .peer_server import PeerServer
+from .precise_wait import wait_until
 
 FIRMWARE_NAME, FIRMWARE_VERSION = "trigger_mcu", "1"
-SPIN_S = 2e-4  # a writer sleeps until this close to a line's due time, then spins
 
 
 @dataclass
@@ -77,18 +77,15 @@ class TriggerMcu:
     # ---------------------------------------------------------------- serial side
     def _write(self, line: bytes) -> None:
         """Put a line on the simulated wire: it reaches the host when its last bit would, one line after
-        another like a UART. The calling thread waits out the transmission itself (sleeping, then spinning
-        for the last part): a writer thread would add its own wake-up delay, which a UART does not have."""
+        another like a UART. The calling thread waits out the transmission itself (precise_wait: sleeping,
+        then spinning for the last part): a writer thread would add its own wake-up delay, which a UART
+        does not have."""
         if self.faults.silent:
             return
         with self._uart:
             due = max(time.monotonic(), self._line_free_at) + 10.0 * len(line) / self.baudrate  # 8N1
             self._line_free_at = due
-            sleep = due - time.monotonic() - SPIN_S  # read the clock once: a second read can be past due
-            if sleep > 0:
-                time.sleep(sleep)
-            while time.monotonic() < due:
-                pass
+            wait_until(due)
             if self.server.send(line):
                 self.lines_sent += 1
 
@@ -122,9 +119,7 @@ class TriggerMcu:
             buffer += data
             while b"\n" in buffer:
                 line, buffer = buffer.split(b"\n", 1)
-                done = received + 10.0 * (len(line) + 1) / self.baudrate  # the command's last bit arrives
-                while time.monotonic() < done:
-                    pass
+                wait_until(received + 10.0 * (len(line) + 1) / self.baudrate)  # the command's last bit arrives
                 self._command(line.strip().decode("ascii", "replace"))
             buffer = buffer[-64:]  # the firmware's line buffer is small too
 
