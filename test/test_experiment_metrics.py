@@ -56,11 +56,16 @@ def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
     assert by_mode["closed"]["truth"]["y"][-1] == pytest.approx(1e-3, abs=5e-5)  # it got there, really
 
 
-def test_the_latency_budget_reads_every_stage_from_the_nodes(tmp_path) -> None:
-    """profile_pose_latency's default observer: each node's own timing, from its diagnostics."""
+@pytest.mark.parametrize("composed", [False, True], ids=["processes", "cell_container"])
+def test_the_latency_budget_reads_every_stage_from_the_nodes(tmp_path, composed: bool) -> None:
+    """profile_pose_latency's default observer: each node's own timing, from its diagnostics. Composed,
+    the same four nodes in one process: every stage still happens (a moving increment is timed only when
+    a fresh correction reached the bridge), handed over in-process."""
     from profile_pose_ros.tools.latency import NODE_STAGES, measure
 
-    result = measure(83.333, 3.0, tmp_path, "corners", 5e-6)
+    result = measure(83.333, 3.0, tmp_path, "corners", 5e-6, composed=composed)
+    assert ("cell_container" in result["cpu_percent"]) == composed
+    assert ("pose_estimator" in result["cpu_percent"]) != composed
     stages = result["stages_ms"]
     assert set(stages) == set(NODE_STAGES)
     for name, s in stages.items():

@@ -48,11 +48,14 @@ class LinkCounters:
 
 class ProfilerLink:
     def __init__(self, source: ProfileSource, trigger: TriggerLink | None, settings: LinkSettings,
-                 emit: Callable[[ProfileFrame, float, bool], None], log: Callable[[str], None] = print) -> None:
+                 emit: Callable[[ProfileFrame, float, bool], None], log: Callable[[str], None] = print,
+                 batch_end: Callable[[], None] | None = None) -> None:
+        """emit: each profile, with its stamp; batch_end (optional): after the profiles of one read, i.e.
+        those that were waiting together (the composed driver hands only the newest of them on)."""
         if settings.stamp_source not in ("trigger", "receive"):
             raise ValueError(f"stamp_source must be 'trigger' or 'receive', not {settings.stamp_source!r}")
         self.source, self.trigger, self.settings = source, trigger, settings
-        self.emit, self.log = emit, log
+        self.emit, self.log, self.batch_end = emit, log, batch_end
         self.counters = LinkCounters()
         self.state = CONNECTING
         self.last_error = ""
@@ -175,6 +178,8 @@ class ProfilerLink:
                 self.last_error = f"bad frame: {item}"
                 continue
             self._frame(item, arrival)
+        if self.batch_end is not None and items:
+            self.batch_end()
 
     def _frame(self, frame: ProfileFrame, arrival: float) -> None:
         c = self.counters

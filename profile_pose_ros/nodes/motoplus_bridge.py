@@ -29,6 +29,7 @@ from ..core.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
+from .local_topics import LocalTopics
 from .parameters import Param, declare_all, updated
 from .realtime import REALTIME_PARAMETERS
 from .run import run_node
@@ -73,7 +74,8 @@ def limits_from(v: dict) -> SessionLimits:
 
 
 class MotoPlusBridgeNode(Node):
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, local: LocalTopics | None = None, **kwargs) -> None:
+        """local: the composed nodes' topics (cell_container): corrections arrive in the compensator's thread."""
         super().__init__(NODE_NAME, **kwargs)
         # Process-wide: whatever else runs in this process (an executor busy with corrections, a test
         # harness), the socket thread must get the GIL within a fraction of the period.
@@ -95,9 +97,13 @@ class MotoPlusBridgeNode(Node):
         direct = ServedDirectly()
         self._sent_guard = self.create_guard_condition(self._publish_increments, callback_group=direct)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        corrections = self.create_subscription(TwistStamped, "correction", self._on_correction, 10,
-                                               callback_group=direct, raw=True)  # read by core/pose_cdr.py
-        self.fast_input = FastInput(corrections, self.context, self._on_correction, guard=self._sent_guard)
+        self.fast_input = FastInput(None, self.context, guard=self._sent_guard)
+        if local is not None:
+            local.take(self.resolve_topic_name("correction"), self._on_correction)
+        else:
+            corrections = self.create_subscription(TwistStamped, "correction", self._on_correction, 10,
+                                                   callback_group=direct, raw=True)  # read by core/pose_cdr.py
+            self.fast_input.add(corrections, self._on_correction)
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/stop", self._on_stop)
         logger = self.get_logger()

@@ -8,6 +8,7 @@ or no reference gives a zero correction and a diagnostic. Gains change at run ti
 from __future__ import annotations
 
 import sys
+import threading
 import time
 
 import numpy as np
@@ -23,6 +24,7 @@ from ..core.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, enc
 from ..core.rotation import rotation_from_quaternion_xyzw
 from .diagnostics import OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
+from .local_topics import LocalTopics, LoopOutput
 from .messages import rotation_translation
 from .parameters import Param, declare_all, updated
 from .realtime import REALTIME_PARAMETERS
@@ -68,7 +70,9 @@ def gains_from(values: dict) -> Gains:
 
 
 class PdCompensatorNode(Node):
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, local: LocalTopics | None = None, **kwargs) -> None:
+        """local: the composed nodes' topics (cell_container): poses arrive in the estimator's thread and
+        corrections go to the bridge of this process the same way; the watchdog is then the container's."""
         super().__init__(NODE_NAME, **kwargs)
         v = self.values = declare_all(self, PARAMETERS)
         self.gains = gains_from(v)
@@ -83,15 +87,21 @@ class PdCompensatorNode(Node):
         self.last_pose_stamp = 0.0
         self.poses = self.corrections = self.stale_zeros = 0
         self.last_error = np.zeros(6)
+        self._lock = threading.Lock()  # composed, poses arrive on another thread than the watchdog's
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.correction_pub = self.create_publisher(TwistStamped, "correction", 10)
+        self.correction_out = LoopOutput(self.create_publisher(TwistStamped, "correction", 10), local,
+                                         self.get_logger())
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # Poses are taken straight from their subscription (fast_input.py): through the executor each one
         # waited behind its per-wake-up bookkeeping and the 100 Hz watchdog, about a millisecond per hop here.
         # ... and serialized: read with struct, corrections written the same way (core/pose_cdr.py)
-        pose_sub = self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose, 10,
-                                            callback_group=ServedDirectly(), raw=True)
-        self.fast_input = FastInput(pose_sub, self.context, self._on_pose, tick=self._watchdog)
+        self.fast_input = FastInput(None, self.context, tick=self._watchdog)
+        if local is not None:
+            local.take(self.resolve_topic_name("pose_with_covariance"), self._on_pose)
+        else:
+            pose_sub = self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose,
+                                                10, callback_group=ServedDirectly(), raw=True)
+            self.fast_input.add(pose_sub, self._on_pose)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
         self.latency = LatencyWindow("trigger_to_correction_ms")  # the pose's stamp -> its correction published
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
@@ -118,9 +128,14 @@ class PdCompensatorNode(Node):
         return pose_vector_in_base(rotation, translation, self.mounting, self.anchor)
 
     def _on_reference(self, msg: PoseStamped) -> None:
-        self.reference = self._vector(msg.pose)
+        with self._lock:
+            self.reference = self._vector(msg.pose)
 
     def _on_pose(self, serialized: bytes) -> None:
+        with self._lock:
+            self._use_pose(serialized)
+
+    def _use_pose(self, serialized: bytes) -> None:
         try:
             pose_stamp_ns, _, pose, covariance = decode_pose_with_covariance_cdr(serialized)
         except CdrFormatError as exc:
@@ -152,11 +167,17 @@ class PdCompensatorNode(Node):
         self.corrections += 1
 
     def _publish(self, velocity: np.ndarray, stamp_ns: int) -> None:
-        self.correction_pub.publish(encode_twist_cdr(velocity, stamp_ns, self.values["base_frame"]))
+        serialized = encode_twist_cdr(velocity, stamp_ns, self.values["base_frame"])
+        self.correction_out.publish(serialized)
+        self.correction_out.hand_over(serialized)  # composed: to the bridge, in this thread
 
     def _watchdog(self) -> float:
         """Zero correction while the pose is stale or there is no reference, repeated at watchdog_rate;
         returns when to look again: while poses keep coming, only when the newest would turn stale."""
+        with self._lock:
+            return self._check_staleness()
+
+    def _check_staleness(self) -> float:
         now = time.time()
         stale_at = self.last_pose_stamp + self.values["max_pose_age"]
         if self.reference is not None and now <= stale_at:

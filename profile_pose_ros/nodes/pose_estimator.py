@@ -33,6 +33,7 @@ from ..core.sequence_gaps import SequenceGaps
 from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
+from .local_topics import LocalTopics, LoopOutput
 from .messages import PoseMessagePair, cdr_stamp_ns
 from .parameters import Param, declare_all, updated
 from .realtime import REALTIME_PARAMETERS
@@ -128,7 +129,9 @@ def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOption
 
 
 class PoseEstimatorNode(Node):
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, local: LocalTopics | None = None, **kwargs) -> None:
+        """local: the composed nodes' topics (cell_container): profiles come from the driver of this process,
+        handed over in its thread, and poses go to the compensator of this process the same way."""
         super().__init__(NODE_NAME, **kwargs)
         self.values = declare_all(self, PARAMETERS)
         self.gauge_file = self.values["gauge_file"] or str(config_path(DEFAULT_GAUGE))
@@ -144,6 +147,7 @@ class PoseEstimatorNode(Node):
         self.pose_pub = self.create_publisher(PoseStamped, "pose", 10, event_callbacks=quiet)
         self.covariance_pub = self.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10,
                                                     event_callbacks=quiet)
+        self.covariance_out = LoopOutput(self.covariance_pub, local, self.get_logger())
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10, event_callbacks=quiet)
         self.latency = LatencyWindow("trigger_to_pose_ms")  # the profile's stamp -> its pose published
         self.diagnostics_timer = self.create_timer(self.values["diagnostics_period"], self._publish_diagnostics)
@@ -151,6 +155,19 @@ class PoseEstimatorNode(Node):
         self.gaps = SequenceGaps()  # profiles never taken: overwritten in the queue, or lost on the way
         self.stats_lock = threading.Lock()  # callbacks may run on other executors' threads
         self.window = self._new_window(time.monotonic())
+        self.fast_input = FastInput(None, self.context)
+        if local is not None:
+            local.take(self.resolve_topic_name("profile"), self._on_profile)
+        else:
+            self._subscribe_profiles()
+        self.outgoing = SerializedPosePair()  # published as bytes: core/pose_cdr.py
+        self.last_error = ""
+        self.last_reprojection_error = float("nan")
+        self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}; "
+                               f"estimator ({fast_wrapper.kernel_name}) ready in {compile_s:.2f} s"
+                               f"{'; composed' if local is not None else ''}")
+
+    def _subscribe_profiles(self) -> None:
         # Sensor-data QoS keeps the newest profiles: a consumer that falls behind drops the oldest. The
         # middleware reports only samples that never arrived (message-lost handler); the gaps in the
         # driver's sequence numbers count the overwritten ones too.
@@ -163,13 +180,7 @@ class PoseEstimatorNode(Node):
         for handler in SubscriptionEventCallbacks(message_lost=self._on_lost).create_event_handlers(
                 MutuallyExclusiveCallbackGroup(), self.profile_sub.handle, self.profile_sub.topic_name):
             self.add_waitable(handler)
-        self.fast_input = FastInput(None, self.context)
         self.fast_input.add(self.profile_sub, self._on_profile, with_info=True)
-        self.outgoing = SerializedPosePair()  # published as bytes: core/pose_cdr.py
-        self.last_error = ""
-        self.last_reprojection_error = float("nan")
-        self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}; "
-                               f"estimator ({fast_wrapper.kernel_name}) ready in {compile_s:.2f} s")
 
     def pump(self, timeout_sec: float = 0.0) -> int:
         """Handle queued profiles (see fast_input.py); spin() or a test harness calls this."""
@@ -237,11 +248,12 @@ class PoseEstimatorNode(Node):
             self.last_reprojection_error = result.reprojection_error
         if result.reason:
             return result.reason
-        for publisher, message in ((self.pose_pub, result.pose), (self.covariance_pub, result.pose_with_covariance)):
+        for publisher, message in ((self.pose_pub, result.pose), (self.covariance_out, result.pose_with_covariance)):
             if publisher.get_subscription_count():  # serializing for nobody cost ~20 us a profile at 1 kHz
                 publisher.publish(message)
         self.latency.add(time.time() - result.stamp_ns * 1e-9)
         self.published += 1
+        self.covariance_out.hand_over(result.pose_with_covariance)  # composed: the correction follows here
         return ""
 
     # ------------------------------------------------------------------ diagnostics

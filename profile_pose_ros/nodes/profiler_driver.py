@@ -22,6 +22,7 @@ from ..devices.profile_source import SimProfileSource
 from ..devices.profiler_link import STREAMING, LinkSettings, ProfilerLink
 from ..devices.trigger_link import TriggerLink
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
+from .local_topics import LocalTopics, LoopOutput
 from .parameters import Param, declare_all
 from .realtime import REALTIME_PARAMETERS
 from .run import run_node
@@ -71,7 +72,8 @@ def make_source(v: dict):
 
 
 class ProfilerDriverNode(Node):
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, local: LocalTopics | None = None, **kwargs) -> None:
+        """local: the composed nodes' topics (cell_container), else None."""
         super().__init__(NODE_NAME, **kwargs)
         v = self.values = declare_all(self, PARAMETERS)
         source = make_source(v)
@@ -84,10 +86,14 @@ class ProfilerDriverNode(Node):
                                                                                 v["reconnect_max"]),
                                 sync_timeout=v["sync_timeout"])
         self.profile_pub = self.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
+        self.profile_out = LoopOutput(self.profile_pub, local, self.get_logger())
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         logger = self.get_logger()
+        self._newest: bytes | None = None  # composed: the newest profile of the current read, to hand over
+        self.superseded = 0  # composed: profiles a newer one replaced before the estimator took it
         self.link = ProfilerLink(source, trigger, settings, self._emit,
-                                 log=lambda text: logger.warn(text, throttle_duration_sec=1.0))
+                                 log=lambda text: logger.warn(text, throttle_duration_sec=1.0),
+                                 batch_end=self._hand_over_newest if local is not None else None)
         self._window = (time.monotonic(), 0, 0, 0)
         self.latency = LatencyWindow("trigger_to_profile_ms")  # the stamp (trigger or receive time) -> published
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
@@ -99,8 +105,19 @@ class ProfilerDriverNode(Node):
         """Runs on the link's thread. Published serialized (core/profile_cdr.py): building the PointCloud2
         for rclpy to convert back was a third of this node's time per profile."""
         sec, nanosec = divmod(int(round(stamp * 1e9)), 1_000_000_000)
-        self.profile_pub.publish(encode_profile_cdr(frame.points, sec, nanosec, self.values["frame_id"]))
+        serialized = encode_profile_cdr(frame.points, sec, nanosec, self.values["frame_id"])
+        self.profile_out.publish(serialized)
         self.latency.add(time.time() - stamp)
+        if self.profile_out.local is not None:
+            self.superseded += self._newest is not None
+            self._newest = serialized
+
+    def _hand_over_newest(self) -> None:
+        """Composed, the link thread after each read: the estimate, the correction and the bridge's store
+        follow here, for the newest profile only (local_topics.py)."""
+        newest, self._newest = self._newest, None
+        if newest is not None:
+            self.profile_out.hand_over(newest)
 
     def _publish_diagnostics(self) -> None:
         link, c, trigger = self.link, self.link.counters, self.link.trigger
@@ -125,6 +142,7 @@ class ProfilerDriverNode(Node):
                   "dropped_late_trigger_line": c.late_lines,
                   "discarded_while_pairing": c.discarded, "connections": c.connections, "pairings": c.resyncs,
                   "last_error": link.last_error or "none", "source": link.source.name,
+                  **({"superseded_before_estimation": self.superseded} if self.profile_out.local else {}),
                   **self.latency.report()}
         if trigger is not None:
             jitter_median, jitter_max = trigger.clock.residual_stats()

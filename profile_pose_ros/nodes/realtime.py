@@ -41,8 +41,9 @@ def set_realtime(priority: int) -> str:
     return f"SCHED_FIFO {priority} on {len(threads)} threads"
 
 
-def realtime_from_parameters(node) -> str | None:
-    """Apply the node's `realtime_priority` if it declares one; the outcome, or None if it does not."""
-    if not node.has_parameter("realtime_priority"):
-        return None
-    return set_realtime(int(node.get_parameter("realtime_priority").value))
+def realtime_from_parameters(nodes) -> str | None:
+    """Apply the `realtime_priority` of the process's nodes (one node, or the composed ones: the highest
+    asked, since it applies to every thread); the outcome, or None if no node declares it."""
+    asked = [int(node.get_parameter("realtime_priority").value)
+             for node in (nodes if isinstance(nodes, list) else [nodes]) if node.has_parameter("realtime_priority")]
+    return set_realtime(max(asked)) if asked else None

@@ -45,12 +45,26 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
     """Ctrl-C and SIGTERM (a process manager's stop) only ask the spin loop to end (`spin` gets that
     event too), so no callback is cut short and destroy_node() runs whole with a live context: the
     bridge's STOP, the recorder draining its queues and closing its bag."""
+    return run_nodes([factory], name, args, startup_errors,
+                     None if spin is None else lambda executor, nodes, stop: spin(executor, nodes[0], stop))
+
+
+def run_nodes(factories: list[Callable[[], Node]], name: str, args=None,
+              startup_errors: tuple[type[BaseException], ...] = (ValueError,),
+              spin: Callable[[SingleThreadedExecutor, list[Node], StopRequest], None] | None = None,
+              destroy_order: Callable[[list[Node]], list[Node]] = lambda nodes: nodes) -> int:
+    """run_node for several nodes in one process (cell_container): built in the given order (a node that
+    fails to start takes down those built before it), one executor, destroyed in `destroy_order`."""
     stop = StopRequest().install()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    nodes: list[Node] = []
     try:
-        node = factory()
+        for factory in factories:
+            nodes.append(factory())
     except startup_errors as exc:
         print(f"[{name}] refusing to start: {exc}", file=sys.stderr)
+        for node in reversed(nodes):
+            node.destroy_node()
         rclpy.try_shutdown()
         return 1
     # What start-up built (modules, compiled kernels, rclpy's types: ~10^5 objects) lives as long as the
@@ -58,16 +72,18 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
     # tens of profiles at 1 kHz; what the node allocates from now on is collected as usual.
     gc.collect()
     gc.freeze()
-    scheduling = realtime_from_parameters(node)  # last: the DDS and device threads exist by now
+    scheduling = realtime_from_parameters(nodes)  # last: the DDS and device threads exist by now
     if scheduling is not None:
-        node.scheduling = scheduling  # reported in the node's /diagnostics (diagnostics.py)
-        log = node.get_logger().warning if "refused" in scheduling else node.get_logger().info
+        for node in nodes:
+            node.scheduling = scheduling  # reported in the node's /diagnostics (diagnostics.py)
+        log = nodes[0].get_logger().warning if "refused" in scheduling else nodes[0].get_logger().info
         log(f"scheduling: {scheduling}")
     executor = SingleThreadedExecutor()
-    executor.add_node(node)
+    for node in nodes:
+        executor.add_node(node)
     try:
         if spin is not None:
-            spin(executor, node, stop)
+            spin(executor, nodes, stop)
         else:
             while not stop.is_set() and executor.context.ok():
                 executor.spin_once(timeout_sec=0.05)
@@ -80,7 +96,8 @@ def run_node(factory: Callable[[], Node], name: str, args=None,
         # cell. destroy_node() has done what matters by then (the bridge's STOP, the bag closed).
         faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S, exit=True)
         executor.shutdown()
-        node.destroy_node()
+        for node in destroy_order(nodes):
+            node.destroy_node()
         rclpy.try_shutdown()
         faulthandler.cancel_dump_traceback_later()
     return 0

@@ -81,12 +81,13 @@ class Experiment:
     def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0,
                  compensator: dict | None = None, refine_model: str = "dense", profile_rate_hz: float | None = None,
                  bag: Path | None = None, gauge_file: str = "", estimator: dict | None = None,
-                 realtime_priority: int = 0) -> None:
+                 realtime_priority: int = 0, composed: bool = False) -> None:
         """rate_hz: the controller's (83.333 or 250), which also triggers the profiler unless
         profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there;
         gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one);
         estimator, compensator: parameters for those nodes beyond the defaults; realtime_priority: the four
-        loop nodes' (nodes/realtime.py; the simulator and the recorder stay under the normal scheduler)."""
+        loop nodes' (nodes/realtime.py; the simulator and the recorder stay under the normal scheduler);
+        composed: the four loop nodes in one cell_container process instead of four."""
         from geometry_msgs.msg import PoseStamped
 
         self.graph, self.rate_hz = graph, rate_hz
@@ -105,12 +106,18 @@ class Experiment:
             sim.update(profiler_trigger="clock", trigger_rate=profile_rate_hz, mcu_baudrate=2_000_000)
             driver.update(baudrate=2_000_000)
         graph.start("sim_cell", {**sim, **gauge})
-        graph.start("profiler_driver", driver)
-        # every pose counts in the step metrics, late or not: no max_profile_age here (the soak sets it)
-        graph.start("pose_estimator", {"diagnostics_period": 0.5, "refine_model": refine_model, **gauge,
-                                        **(estimator or {}), **loop})
-        graph.start("pd_compensator", {"diagnostics_period": 0.5, **(compensator or {}), **loop})
-        graph.start("motoplus_bridge", {"port": robot_port, "period": period, "diagnostics_period": 0.5, **loop})
+        nodes = {
+            "profiler_driver": driver,
+            # every pose counts in the step metrics, late or not: no max_profile_age here (the soak sets it)
+            "pose_estimator": {"diagnostics_period": 0.5, "refine_model": refine_model, **gauge, **(estimator or {}),
+                               **loop},
+            "pd_compensator": {"diagnostics_period": 0.5, **(compensator or {}), **loop},
+            "motoplus_bridge": {"port": robot_port, "period": period, "diagnostics_period": 0.5, **loop}}
+        if composed:
+            graph.start_composed(nodes)
+        else:
+            for executable, params in nodes.items():
+                graph.start(executable, params)
         node = graph.node
         self.poses: list[tuple[float, np.ndarray]] = []
         self.truth: list[tuple[float, np.ndarray]] = []
@@ -315,11 +322,12 @@ def _save(fig, path) -> str:
 
 def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise: float, out, seed: int = 0,
         compensator: dict | None = None, modes: tuple[str, ...] = ("open", "closed"),
-        refine_model: str = "dense", bag: Path | None = None, gauge_file: str = "") -> dict:
+        refine_model: str = "dense", bag: Path | None = None, gauge_file: str = "", composed: bool = False) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_experiment")
     runs: list[dict] = []
     try:
-        exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model, bag=bag, gauge_file=gauge_file)
+        exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model, bag=bag, gauge_file=gauge_file,
+                         composed=composed)
         exp.start()
         for mode in modes:
             exp.bridge(arm=(mode == "closed"))
@@ -369,6 +377,8 @@ def main(argv=None) -> int:
                         "config/gauge_designed_n6.yaml is ~4.5x better determined over the same motion)")
     parser.add_argument("--no-bag", action="store_true", help="do not record the run (by default every topic "
                         "goes to <run>/bag, MCAP with zstd chunks)")
+    parser.add_argument("--composed", action="store_true",
+                        help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "experiment")
@@ -379,7 +389,8 @@ def main(argv=None) -> int:
           f"{args.refine_model} refinement, {args.noise * 1e6:g} um profile noise; logs in {out / 'logs'}",
           flush=True)
     result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=gains,
-                 modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge)
+                 modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge,
+                 composed=args.composed)
     if len(args.modes) < 2:  # nothing to compare: the runs only
         write_json(out / "experiment.json", result)
         print(f"results: {out / 'experiment.json'}")

@@ -20,6 +20,7 @@ MODULES = {
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator",
     "pd_compensator": "profile_pose_ros.nodes.pd_compensator",
     "motoplus_bridge": "profile_pose_ros.nodes.motoplus_bridge",
+    "cell_container": "profile_pose_ros.nodes.cell_container",
     "bag_recorder": "profile_pose_ros.nodes.bag_recorder",
     "bag_player": "profile_pose_ros.nodes.bag_player",
 }
@@ -151,10 +152,32 @@ class Graph:
                 overrides = self.log_dir / f"{name}.overrides.yaml"
                 overrides.write_text(yaml.safe_dump({f"/**/{executable}": {"ros__parameters": dict(params)}}))
                 command += ["--params-file", str(overrides)]
-        with open(self.log_dir / "commands.txt", "a") as f:
-            f.write(f"ROS_DOMAIN_ID={self.domain_id} {' '.join(command)}\n")
         with open(self.log_dir / "params.yaml", "a") as f:  # what each node was given, for a replay
             f.write(yaml.safe_dump({executable: {"ros__parameters": dict(params or {})}}, sort_keys=False))
+        return self._record_and_launch(name, command)
+
+    def start_composed(self, node_params: dict[str, dict], name: str = "cell_container") -> subprocess.Popen:
+        """cell_container (the loop's four nodes in one process), each node with its own parameters: a
+        file with one block per node name, since `-p` would give every node the same value (`port` is
+        the driver's profiler port and the bridge's controller port)."""
+        if name not in self._launcher:
+            self._launcher[name] = launcher(name)
+        command = [*self._launcher[name], "--ros-args"]
+        if self.namespace:
+            command += ["-r", f"__ns:=/{self.namespace}"]
+        if self.params_file is not None:
+            command += ["--params-file", str(self.params_file)]
+        blocks = {f"/**/{node}": {"ros__parameters": dict(params)} for node, params in node_params.items()}
+        (self.log_dir / f"{name}.params.yaml").write_text(yaml.safe_dump(blocks, sort_keys=False))
+        command += ["--params-file", str(self.log_dir / f"{name}.params.yaml")]
+        with open(self.log_dir / "params.yaml", "a") as f:
+            f.write(yaml.safe_dump({node: {"ros__parameters": dict(params)} for node, params in node_params.items()},
+                                   sort_keys=False))
+        return self._record_and_launch(name, command)
+
+    def _record_and_launch(self, name: str, command: list[str]) -> subprocess.Popen:
+        with open(self.log_dir / "commands.txt", "a") as f:
+            f.write(f"ROS_DOMAIN_ID={self.domain_id} {' '.join(command)}\n")
         self.commands[name] = command
         return self._launch(name)
 

@@ -72,7 +72,7 @@ class NodeReports:
 
 
 def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float, skip: tuple[str, ...] = (),
-            observer: str = "nodes") -> dict:
+            observer: str = "nodes", composed: bool = False) -> dict:
     from rclpy.qos import qos_profile_sensor_data
 
     control_hz = 83.333 if rate_hz < 200 else 250.0
@@ -82,7 +82,7 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
     reports = NodeReports(graph)
     try:
         exp = Experiment(graph, control_hz, noise, refine_model=refine_model,
-                         profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None)
+                         profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None, composed=composed)
         for name, topic, msgtype in STAGES:
             if name in skip or observer != "dds":
                 continue
@@ -110,7 +110,7 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
     stages = ({name: summary(v) for name, v in latencies.items()} if observer == "dds"
               else reports.summaries())
     return {"rate_hz": rate_hz, "control_hz": control_hz, "seconds": seconds, "refine_model": refine_model,
-            "observer": observer, "stages_ms": stages, "cpu_percent": cpu_share, "diagnostics": diagnostics}
+            "observer": observer, "composed": composed, "stages_ms": stages, "cpu_percent": cpu_share, "diagnostics": diagnostics}
 
 
 def print_table(results: list[dict]) -> None:
@@ -142,6 +142,8 @@ def main(argv=None) -> int:
                         help="nodes: each node's own timing, from its diagnostics (no load from this client); "
                              "dds: this client subscribes to every stage")
     parser.add_argument("--skip", nargs="*", default=[], help="stages not to subscribe to (dds observer)")
+    parser.add_argument("--composed", action="store_true",
+                        help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "latency")
@@ -149,7 +151,7 @@ def main(argv=None) -> int:
     for rate in args.rates:
         print(f"measuring at {rate:g} Hz for {args.seconds:g} s (logs in {out})", flush=True)
         results.append(measure(rate, args.seconds, out, args.refine_model, args.noise, tuple(args.skip),
-                               args.observer))
+                               args.observer, args.composed))
     print_table(results)
     write_json(out / "latency.json", {"results": results})
     print(f"results: {out / 'latency.json'}")

@@ -36,7 +36,8 @@ LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 
 
 class Soak:
-    def __init__(self, graph: Graph, profile_rate_hz: float, refine_model: str, realtime_priority: int = 0) -> None:
+    def __init__(self, graph: Graph, profile_rate_hz: float, refine_model: str, realtime_priority: int = 0,
+                 composed: bool = False) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
 
         control_hz = 83.333 if profile_rate_hz < 200 else 250.0
@@ -46,7 +47,8 @@ class Soak:
         # machine falls behind, the loop gets fresh poses rather than a backlog of stale ones
         self.exp = Experiment(graph, control_hz, 5e-6, refine_model=refine_model,
                               profile_rate_hz=profile_rate_hz,  # sim_cell's own clock, which the soak can pause
-                              estimator={"max_profile_age": 0.05}, realtime_priority=realtime_priority)
+                              estimator={"max_profile_age": 0.05}, realtime_priority=realtime_priority,
+                              composed=composed)
         self.latency = NodeReports(graph)
         self.not_ok: dict[tuple[str, str, str], list] = {}  # (status, level, kind) -> [count, first, last, example]
         self._started = time.time()
@@ -157,11 +159,11 @@ def verdict(result: dict) -> dict:
 
 
 def run_soak(minutes: float, rate_hz: float, interval_s: float, refine_model: str, out,
-             realtime_priority: int = 0) -> dict:
+             realtime_priority: int = 0, composed: bool = False) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_soak")
     crashes: list[str] = []
     try:
-        s = Soak(graph, rate_hz, refine_model, realtime_priority)
+        s = Soak(graph, rate_hz, refine_model, realtime_priority, composed)
         try:
             result = s.run(minutes * 60.0, interval_s)
         except RuntimeError as exc:  # Graph.spin_until: a node process died
@@ -170,7 +172,7 @@ def run_soak(minutes: float, rate_hz: float, interval_s: float, refine_model: st
     finally:
         graph.close()
     result.update({"minutes": minutes, "rate_hz": rate_hz, "realtime_priority": realtime_priority,
-                   "crashes": crashes})
+                   "composed": composed, "crashes": crashes})
     result["verdict"] = verdict(result) if result["intervals"] else {"ok": False, "crashes": crashes}
     return result
 
@@ -219,11 +221,14 @@ def main(argv=None) -> int:
     parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
     parser.add_argument("--realtime-priority", type=int, default=0, help="SCHED_FIFO priority of the four loop "
                         "nodes (the simulator stays under the normal scheduler); 0: off")
+    parser.add_argument("--composed", action="store_true",
+                        help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "soak")
     print(f"soak: the closed loop for {args.minutes:g} min at {args.rate:g} Hz (logs in {out / 'logs'})", flush=True)
-    result = run_soak(args.minutes, args.rate, args.interval, args.refine_model, out, args.realtime_priority)
+    result = run_soak(args.minutes, args.rate, args.interval, args.refine_model, out, args.realtime_priority,
+                      args.composed)
     print_report(result)
     write_json(out / "soak.json", result)
     print(f"results: {out / 'soak.json'}")
