@@ -42,7 +42,10 @@ def stamp(msg) -> tuple[int, int]:
 
 
 def test_two_namespaced_cells_side_by_side_without_cross_talk(ros, tmp_path) -> None:
-    cells = {ns: bringup(ros.domain_id, tmp_path / ns, "--namespace", ns) for ns in CELLS}
+    """The second cell runs its four nodes composed (cell_container): the same names, topics and
+    diagnostics, and its in-process hand-over keeps to its own namespace too."""
+    cells = {ns: bringup(ros.domain_id, tmp_path / ns, "--namespace", ns, *(["--composed"] if ns == CELLS[1] else []))
+             for ns in CELLS}
     try:
         client = ros.node("cross_talk_check")
         profiles = {ns: set() for ns in CELLS}

@@ -4,6 +4,7 @@ commands under runs/<timestamp>/; "ready" only once every node reports and profi
 corrections flow; Ctrl-C (or SIGTERM) stops them bridge first (it sends STOP), cell last, and leaves no
 process behind. `ros2 run profile_pose_ros <exe>` is used where a ROS install provides the package, the
 venv's console scripts otherwise. --namespace puts a second cell beside the first without cross-talk.
+--composed runs the four nodes in one cell_container process (nodes/cell_container.py).
 """
 from __future__ import annotations
 
@@ -35,8 +36,8 @@ def discovery_range(requested: str | None, environ: dict) -> str:
 
 class Bringup:
     def __init__(self, out: Path, params_file: Path, namespace: str = "", hardware: bool = False,
-                 record: bool = False, domain_id: int | None = None) -> None:
-        self.out, self.hardware, self.record = out, hardware, record
+                 record: bool = False, domain_id: int | None = None, composed: bool = False) -> None:
+        self.out, self.hardware, self.record, self.composed = out, hardware, record, composed
         self.graph = Graph(out, domain_id=domain_id, client_name="bringup", namespace=namespace,
                            params_file=params_file)
         self.seen: dict[str, int] = {topic: 0 for topic in ALIVE_TOPICS}
@@ -51,8 +52,12 @@ class Bringup:
             g.start("sim_cell", {"profiler_port": profiler, "mcu_port": mcu, "robot_port": robot})
             driver = {"port": profiler, "serial_url": f"socket://127.0.0.1:{mcu}"}
             bridge = {"port": robot}
-        for name, params in zip(NODES, (driver, {}, {}, bridge)):
-            g.start(name, params)
+        params = dict(zip(NODES, (driver, {}, {}, bridge)))
+        if self.composed:
+            g.start_composed(params)
+        else:
+            for name, node_params in params.items():
+                g.start(name, node_params)
         self._watch_topics()
 
     def _watch_topics(self) -> None:
@@ -103,6 +108,7 @@ def main(argv=None) -> int:
     parser.add_argument("--params-file", help="default: config/cell.yaml (simulated), config/hardware.yaml")
     parser.add_argument("--namespace", default="", help="e.g. cell2: every node and topic under /cell2")
     parser.add_argument("--record", action="store_true", help="also record the cell's topics (bag_recorder)")
+    parser.add_argument("--composed", action="store_true", help="the four nodes in one cell_container process")
     parser.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: the environment's, else 0)")
     parser.add_argument("--discovery-range", type=str.upper, choices=DISCOVERY_RANGES,
                         help="ROS_AUTOMATIC_DISCOVERY_RANGE for every node (default: the environment's, else "
@@ -118,7 +124,7 @@ def main(argv=None) -> int:
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = discovery = discovery_range(args.discovery_range, os.environ)
     out = run_dir(args.out, f"bringup{'-' + args.namespace.strip('/') if args.namespace else ''}")
     stop = StopRequest().install()
-    cell = Bringup(out, params_file, args.namespace, args.hardware, args.record, domain_id)
+    cell = Bringup(out, params_file, args.namespace, args.hardware, args.record, domain_id, args.composed)
     code = 0
     try:
         cell.start()
