@@ -164,3 +164,28 @@ def test_the_bridge_process_sends_stop_on_every_shutdown_path(cell, tmp_path, si
         assert cell.controller.session_end == end, (tmp_path / "bridge.log").read_text()
     finally:
         processes.stop(process)
+
+
+def test_the_composed_loop_sends_stop_when_its_process_is_terminated(cell, tmp_path) -> None:
+    """cell_container holds the bridge among three other nodes: SIGTERM still takes the clean path, and the
+    bridge is torn down first, so the controller hears STOP, not a dropped connection."""
+    import yaml
+
+    from profile_pose_ros.tools.graph import free_port
+
+    params = tmp_path / "container.yaml"  # per node: `-p port:=` would give the driver the controller's port
+    params.write_text(yaml.safe_dump({
+        "/**/motoplus_bridge": {"ros__parameters": {"port": cell.controller.port, "arm_on_start": True,
+                                                    "watchdog": 5.0}},
+        "/**/profiler_driver": {"ros__parameters": {"port": free_port()}}}))  # no profiler: it retries
+    command = processes.executable("cell_container", MODULES["cell_container"]) + [
+        "--ros-args", "--params-file", str(params)]
+    process = processes.start(command, unique_domain_id(), tmp_path / "container.log")
+    try:
+        assert wait_for(lambda: len(cell.applied) > 10, 60.0), (tmp_path / "container.log").read_text()
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(15.0) == 0
+        assert wait_for(lambda: cell.controller.session is None)
+        assert cell.controller.session_end == "STOP", (tmp_path / "container.log").read_text()
+    finally:
+        processes.stop(process)
