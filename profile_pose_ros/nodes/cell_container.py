@@ -1,6 +1,7 @@
 """cell_container: profiler_driver, pose_estimator, pd_compensator and motoplus_bridge composed in one
-process, the loop's topics handed over in-process (local_topics.py), for a cell PC that must close the
-loop at the profiler's 1 kHz.
+process, the loop's topics handed over in-process (local_topics.py), for a cell PC short of CPU: at
+83.3 Hz it took two thirds of the CPU of four processes and sent increments ~1.5 ms sooner; at 1 kHz on
+a 2-core VM it was worse, the four nodes sharing one interpreter lock (docs/performance.md).
 
 Each node keeps its name, parameters, topics, services and /diagnostics, so the parameter files, the
 bringup's checks, bags and `ros2 param` work as with four processes; `profile`, `pose_with_covariance`
@@ -34,7 +35,8 @@ HOUSEKEEPING_PERIOD = 0.05  # s: every node's timers, services and parameter req
 def spin_composed(executor, nodes: list, stop: StopRequest) -> None:
     """The container's thread: the bridge's sent increments (its guard condition) as they come, the
     compensator's watchdog at its deadline, the executor's other work every HOUSEKEEPING_PERIOD."""
-    bridge, compensator = nodes[0], nodes[1]
+    bridge = next(node for node in nodes if isinstance(node, MotoPlusBridgeNode))
+    compensator = next(node for node in nodes if isinstance(node, PdCompensatorNode))
     due = time.monotonic()
     while executor.context.ok() and not stop.is_set():
         watchdog_in = compensator.fast_input.tick_due - time.time()

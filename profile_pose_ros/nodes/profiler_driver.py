@@ -142,7 +142,7 @@ class ProfilerDriverNode(Node):
                   "dropped_late_trigger_line": c.late_lines,
                   "discarded_while_pairing": c.discarded, "connections": c.connections, "pairings": c.resyncs,
                   "last_error": link.last_error or "none", "source": link.source.name,
-                  **({"superseded_before_estimation": self.superseded} if self.profile_out.local else {}),
+                  **({"superseded_before_estimation": self.superseded} if self.profile_out.local is not None else {}),
                   **self.latency.report()}
         if trigger is not None:
             jitter_median, jitter_max = trigger.clock.residual_stats()
