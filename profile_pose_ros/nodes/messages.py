@@ -1,17 +1,15 @@
 """Conversions between ROS messages and the core's arrays (message types only, no rclpy node code)."""
 from __future__ import annotations
 
-import struct
-
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamped
 from sensor_msgs.msg import PointCloud2, PointField
 
+from ..core.cdr import HEADER, STAMP
 from ..core.profile_cloud import Field, decode_profile, encode_profile
 from ..core.rotation import quaternion_xyzw, rotation_angle, rotation_from_quaternion_xyzw
 
-_CDR_STAMP = struct.Struct("<4xiI")  # encapsulation header, then header.stamp (sec, nanosec)
 
 
 def stamp_ns(stamp: Time) -> int:
@@ -21,7 +19,7 @@ def stamp_ns(stamp: Time) -> int:
 def cdr_stamp_ns(cdr: bytes) -> int:
     """header.stamp of a serialized message that starts with a std_msgs/Header (little-endian CDR), without
     decoding the rest (a 3200-point profile, say)."""
-    sec, nanosec = _CDR_STAMP.unpack_from(cdr)
+    sec, nanosec = STAMP.unpack_from(cdr, HEADER)
     return sec * 1_000_000_000 + nanosec
 
 

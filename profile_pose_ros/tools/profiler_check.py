@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from ..nodes.messages import cdr_stamp_ns, pose_difference, stamp_ns
-from .graph import Graph, free_port
+from .graph import Graph, cpu_percent, free_port
 from .report import nearest_stamp, run_dir, summary, table, write_json
 
 SINES = {"sine_amplitude": [2e-3, 1e-3, 1e-3, 2e-3, 1e-3, 2e-3], "sine_frequency": [0.5, 0.7, 0.3, 0.4, 0.6, 0.2]}
@@ -80,7 +80,7 @@ class CheckRun:
         last = lambda: len(self.truth) and self.poses and max(p[0] for p in self.poses[-5:]) >= max(self.truth)  # noqa
         g.spin_until(last, 5.0)
         wall = time.monotonic() - wall_start
-        self.cpu_share = {name: (used - cpu_start[name]) / wall for name, used in g.cpu_seconds().items()}
+        self.cpu_percent = cpu_percent(cpu_start, g.cpu_seconds(), wall)
         g.spin_until(lambda: False, 1.2)  # the last diagnostics of every node
         return self._compare()
 
@@ -138,7 +138,7 @@ class CheckRun:
         span = (truth_stamps[-1] - truth_stamps[0]) * 1e-9 if len(truth_stamps) > 1 else float("nan")
         return {
             "rate_hz": self.rate_hz, "achieved_rate_hz": (len(truth_stamps) - 1) / span,
-            "cpu_share_of_one_core": self.cpu_share,
+            "cpu_percent_of_one_core": self.cpu_percent,
             "triggers": len(self.truth), "profiles": len(stamps), "poses": len(self.poses),
             "stamp_error_us": summary(np.abs(stamp_error_us)), "stamp_bias_us": float(np.median(stamp_error_us)),
             "position_error_um": summary(np.array(position) * 1e6),
