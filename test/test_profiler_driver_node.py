@@ -147,7 +147,11 @@ def test_reconnects_within_a_second_when_the_device_closes(rig_factory) -> None:
     assert rig.cell.profiler.closes >= 5 and c.connections >= 6
     assert c.dropped == rig.cell.profiler.frames_unsent and c.published + c.dropped + c.late_lines == 400
     assert c.late_lines <= 4
-    assert c.resyncs == 1  # a reconnect to the same device keeps the pairing: no trigger pause
+    # A reconnect to the same device keeps the pairing: no trigger pause. A pairing that failed is rightly
+    # done again (seen once, a clean-clone CI run on a loaded machine: 2 pairings): the first profile after
+    # arming lost to a close (the two counts disagree), or the MCU too slow to acknowledge a command.
+    retried = c.unacknowledged_pairings + rig.link.matcher.disagreements
+    assert c.resyncs == 1 + retried, (c, rig.link.matcher.disagreements, rig.link.last_error)
     arrivals = np.array([t for t, _ in rig.profiles])
     assert np.max(np.diff(arrivals)) < 1.0
     rig.check_published_against_truth()

@@ -44,6 +44,7 @@ class LinkCounters:
     discarded: int = 0  # received while the MCU link starts or counters are paired (trigger time unknown)
     connections: int = 0
     resyncs: int = 0
+    unacknowledged_pairings: int = 0  # pairings abandoned: the MCU did not acknowledge DISARM or RESET in time
 
 
 class ProfilerLink:
@@ -149,6 +150,7 @@ class ProfilerLink:
         try:
             if not self.trigger.command("DISARM"):
                 self.last_error = "trigger MCU did not acknowledge DISARM"
+                self.counters.unacknowledged_pairings += 1
                 return
             quiet_since = time.monotonic()
             deadline = quiet_since + 1.0
@@ -161,6 +163,7 @@ class ProfilerLink:
                     quiet_since = time.monotonic()
             if not self.trigger.command("RESET"):
                 self.last_error = "trigger MCU did not acknowledge RESET"
+                self.counters.unacknowledged_pairings += 1
                 return
             with self._cond:  # the last profile before disarming says which count the next trigger gets
                 self.matcher.arm(self._last_count if self._count_seen_on_this_connection else None)

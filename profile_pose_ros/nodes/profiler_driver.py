@@ -141,6 +141,8 @@ class ProfilerDriverNode(Node):
                   "profiles_dropped": c.dropped, "bad_frames": c.bad_frames, "unsynced_profiles": c.unsynced,
                   "dropped_late_trigger_line": c.late_lines,
                   "discarded_while_pairing": c.discarded, "connections": c.connections, "pairings": c.resyncs,
+                  "pairings_unacknowledged": c.unacknowledged_pairings,
+                  "pairings_disagreeing": link.matcher.disagreements,
                   "last_error": link.last_error or "none", "source": link.source.name,
                   **({"superseded_before_estimation": self.superseded} if self.profile_out.local is not None else {}),
                   **self.latency.report()}
