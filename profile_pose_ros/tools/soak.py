@@ -149,7 +149,8 @@ def verdict(result: dict) -> dict:
     delivered = used / triggered if triggered else 0.0
     totals = result["totals"]
     lost = {"driver (triggered, no profile)": totals["triggered"] - totals["profiles"],
-            "estimator (profile, no pose: lost in its queue, skipped as stale or rejected)":
+            "estimator (profile, no pose: lost in its queue, skipped as stale, rejected, or superseded in "
+            "cell_container)":
                 totals["profiles"] - totals["poses"],
             "compensator (pose stale on arrival or dropped)": totals["poses"] - totals["compensator_poses"]}
     return {"crashes": result["crashes"], "triggered": triggered, "poses_used": used, "delivered": delivered,
