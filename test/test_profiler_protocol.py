@@ -100,3 +100,19 @@ def test_fuzz_inserted_noise_never_costs_the_following_frames(noise: bytes, wher
     assert [f.trigger_count for f in frames][-2:] == [11, 12]
     for f in frames:  # whatever decodes passed its checksum: it is one of the frames sent
         assert f.trigger_count in (10, 11, 12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(st.integers(-(2 ** 31), 2 ** 31 - 1), st.integers(-(2 ** 31), -(2 ** 31) + 20)),
+                max_size=400),
+       st.floats(-0.2, 0.2), st.floats(1e-6, 1e-3))
+def test_the_point_table_from_the_counts_is_the_table_from_the_points(counts: list[int], x_start: float,
+                                                                       x_pitch: float) -> None:
+    """The driver publishes ProfileFrame.xyz_table (straight from the device's counts, every invalid code
+    included); it must be byte for byte the cloud the float64 points would give."""
+    from profile_pose_ros.core.profile_cdr import encode_profile_cdr, encode_xyz_table_cdr
+    from profile_pose_ros.core.profiler_protocol import ProfileFrame
+
+    frame_ = ProfileFrame(1, 2, x_start, x_pitch, np.array(counts, dtype="<i4"))
+    assert encode_xyz_table_cdr(frame_.xyz_table(), 17, 42, "profiler") == \
+        encode_profile_cdr(frame_.points, 17, 42, "profiler")

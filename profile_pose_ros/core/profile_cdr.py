@@ -18,7 +18,7 @@ from functools import lru_cache
 import numpy as np
 
 from .cdr import STAMP, CdrReader, CdrWriter, stamped
-from .profile_cloud import Field, ProfileFormatError, decode_profile, encode_profile
+from .profile_cloud import XYZ_FIELDS, Field, ProfileFormatError, decode_profile, encode_profile
 
 _U32X2 = struct.Struct("<II")
 _FIELD_TAIL = struct.Struct("<IB")
@@ -41,7 +41,18 @@ def encode_profile_cdr(points: np.ndarray, stamp_sec: int, stamp_nanosec: int, f
                        intensity: np.ndarray | None = None) -> bytes:
     """An (N, 2) [x, z] profile as a serialized PointCloud2 (DESIGN.md's layout, encode_profile's fields)."""
     fields, step, table = encode_profile(points, intensity)
-    prefix = _cloud_prefix(frame_id, tuple(fields), step, len(points))
+    return _cloud_cdr(tuple(fields), step, len(points), table, stamp_sec, stamp_nanosec, frame_id)
+
+
+def encode_xyz_table_cdr(table: bytes, stamp_sec: int, stamp_nanosec: int, frame_id: str) -> bytes:
+    """A point table already in encode_profile's x, y, z layout (ProfileFrame.xyz_table) as a serialized
+    PointCloud2: encode_profile_cdr's bytes for the same profile."""
+    return _cloud_cdr(XYZ_FIELDS, 12, len(table) // 12, table, stamp_sec, stamp_nanosec, frame_id)
+
+
+def _cloud_cdr(fields: tuple[Field, ...], step: int, width: int, table: bytes, stamp_sec: int, stamp_nanosec: int,
+               frame_id: str) -> bytes:
+    prefix = _cloud_prefix(frame_id, fields, step, width)
     return b"".join((stamped(prefix, stamp_sec, stamp_nanosec), table, b"\x00"))  # is_dense: invalid points: NaN
 
 

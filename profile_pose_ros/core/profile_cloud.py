@@ -119,6 +119,9 @@ def _decode_numpy(raw: np.ndarray, by_name: dict, width: int, point_step: int, a
     return points
 
 
+XYZ_FIELDS = (Field("x", 0, FLOAT32), Field("y", 4, FLOAT32), Field("z", 8, FLOAT32))  # 12 bytes a point
+
+
 def encode_profile(points: np.ndarray, intensity: np.ndarray | None = None) -> tuple[list[Field], int, bytes]:
     """(fields, point_step, data) for an (N, 2) [x, z] profile: x, y=0, z float32, optional intensity."""
     points = np.asarray(points, dtype=float)
@@ -132,7 +135,7 @@ def encode_profile(points: np.ndarray, intensity: np.ndarray | None = None) -> t
     buffer[:, 0] = np.where(valid, x, np.nan)
     buffer[:, 1] = np.where(valid, 0.0, np.nan)
     buffer[:, 2] = np.where(valid, z, np.nan)
-    fields = [Field("x", 0, FLOAT32), Field("y", 4, FLOAT32), Field("z", 8, FLOAT32)]
+    fields = list(XYZ_FIELDS)
     if intensity is not None:
         buffer[:, 3] = intensity
         fields.append(Field("intensity", 12, FLOAT32))

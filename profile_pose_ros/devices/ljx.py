@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from ..core.profiler_protocol import ProfileFrame, ProfilerProtocolError, z_metres
+from ..core.profiler_protocol import ProfileFrame, ProfilerProtocolError
 
 RC_OK = 0
 NOTIFY_OK = (0, 0x10000)
@@ -90,7 +90,7 @@ def parse_batch(buffer: bytes, unit_size: int, count: int, info: ProfileInfo) ->
         unit = buffer[k * unit_size:(k + 1) * unit_size]
         trigger_count = int.from_bytes(unit[4:8], "little")
         heights = np.frombuffer(unit, dtype="<i4", count=n, offset=HEADER_BYTES)
-        frames.append(ProfileFrame(trigger_count, 0, x_start, x_pitch, z_metres(heights)))
+        frames.append(ProfileFrame(trigger_count, 0, x_start, x_pitch, heights))
     return frames
 
 

@@ -15,7 +15,7 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 
 from ..core.latency_window import LatencyWindow
-from ..core.profile_cdr import encode_profile_cdr
+from ..core.profile_cdr import encode_xyz_table_cdr
 from ..core.profiler_protocol import ProfileFrame
 from ..devices.ljx import LjxProfileSource
 from ..devices.profile_source import SimProfileSource
@@ -103,9 +103,10 @@ class ProfilerDriverNode(Node):
 
     def _emit(self, frame: ProfileFrame, stamp: float, synced: bool) -> None:
         """Runs on the link's thread. Published serialized (core/profile_cdr.py): building the PointCloud2
-        for rclpy to convert back was a third of this node's time per profile."""
+        for rclpy to convert back was a third of this node's time per profile; the point table comes
+        straight from the device's counts (ProfileFrame.xyz_table)."""
         sec, nanosec = divmod(int(round(stamp * 1e9)), 1_000_000_000)
-        serialized = encode_profile_cdr(frame.points, sec, nanosec, self.values["frame_id"])
+        serialized = encode_xyz_table_cdr(frame.xyz_table(), sec, nanosec, self.values["frame_id"])
         self.profile_out.publish(serialized)
         self.latency.add(time.time() - stamp)
         if self.profile_out.local is not None:
