@@ -49,7 +49,7 @@ def _turns_clockwise(a: tuple[float, float], b: tuple[float, float], c: tuple[fl
 
 class SampleWindow:
     """(device, host) samples of the last window_s device seconds, in two numpy arrays. A deque of
-    tuples turned into an array at each refit cost 5-8 ms at 1 kHz (10,000 samples) in the trigger
+    tuples turned into an array at each refit took up to 7.7 ms at 1 kHz (10,000 samples) in the trigger
     thread, holding the GIL, so the driver's profile thread stalled behind it four times a second."""
 
     def __init__(self, capacity: int = 1024) -> None:
