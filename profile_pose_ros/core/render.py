@@ -36,15 +36,18 @@ class ProfilerModel:
     def x(self) -> np.ndarray:
         return self.x_start + self.x_pitch * np.arange(self.n_points)
 
+    @property
+    def fan_slope(self) -> float:
+        """How fast the measurement range's half width grows with z (the trapezoid's sides)."""
+        return (self.width_far - self.width_near) / (2.0 * (self.z_far - self.z_near))
+
     def half_width(self, z: np.ndarray) -> np.ndarray:
-        slope = (self.width_far - self.width_near) / (2.0 * (self.z_far - self.z_near))
-        return 0.5 * self.width_near + slope * (np.asarray(z) - self.z_near)
+        return 0.5 * self.width_near + self.fan_slope * (np.asarray(z) - self.z_near)
 
     @property
     def emitter_z(self) -> float:
         """The laser fan's apex: where the trapezoid's sides meet (on the z axis)."""
-        slope = (self.width_far - self.width_near) / (2.0 * (self.z_far - self.z_near))
-        return self.z_near - 0.5 * self.width_near / slope
+        return self.z_near - 0.5 * self.width_near / self.fan_slope
 
     def in_range(self, x: np.ndarray, z: np.ndarray) -> np.ndarray:
         return (z >= self.z_near) & (z <= self.z_far) & (np.abs(x) <= self.half_width(z))

@@ -72,22 +72,24 @@ def _trace(x, t, r0, direction, normals, offsets, ridge_q, ridge_u, half_w, half
 
 
 @njit(cache=True, fastmath=False)
-def _shadow_and_range(x, z, emitter_z, z_near, z_far, half_near, half_slope):  # pragma: no cover
-    """render.shadow_mask and ProfilerModel.in_range, in place, with the same arithmetic; x ascending."""
+def _shadow_and_range(x, z, occlusion, emitter_z, z_near, z_far, half_near, half_slope):  # pragma: no cover
+    """render.shadow_mask (if occlusion) and ProfilerModel.in_range, in place, with the same arithmetic;
+    x ascending."""
     n = x.shape[0]
-    angle = np.arctan2(x, z - emitter_z)
-    first_right = 0
-    while first_right < n and x[first_right] < 0:
-        first_right += 1
-    for start, stop, step, sign in ((first_right, n, 1, 1.0), (first_right - 1, -1, -1, -1.0)):
-        running = -np.inf
-        for i in range(start, stop, step):
-            if not np.isfinite(angle[i]):
-                continue
-            a = sign * angle[i]
-            running = max(running, a)
-            if a < running - 1e-12:
-                z[i] = np.nan
+    if occlusion:
+        angle = np.arctan2(x, z - emitter_z)
+        first_right = 0
+        while first_right < n and x[first_right] < 0:
+            first_right += 1
+        for start, stop, step, sign in ((first_right, n, 1, 1.0), (first_right - 1, -1, -1, -1.0)):
+            running = -np.inf
+            for i in range(start, stop, step):
+                if not np.isfinite(angle[i]):
+                    continue
+                a = sign * angle[i]
+                running = max(running, a)
+                if a < running - 1e-12:
+                    z[i] = np.nan
     for i in range(n):
         zi = z[i]
         if not (zi >= z_near and zi <= z_far and abs(x[i]) <= half_near + half_slope * (zi - z_near)):
@@ -100,12 +102,8 @@ def visible_depth_fast(gauge: Gauge, rotation: np.ndarray, translation: np.ndarr
     """Same contract as render.visible_depth (which stays the reference)."""
     x = profiler.x
     z = trace_depth_fast(gauge, rotation, translation, x)
-    if not profiler.occlusion:
-        z[~profiler.in_range(x, z)] = np.nan
-        return z
-    half_slope = (profiler.width_far - profiler.width_near) / (2.0 * (profiler.z_far - profiler.z_near))
-    return _shadow_and_range(x, z, profiler.emitter_z, profiler.z_near, profiler.z_far,
-                             0.5 * profiler.width_near, half_slope)
+    return _shadow_and_range(x, z, profiler.occlusion, profiler.emitter_z, profiler.z_near, profiler.z_far,
+                             0.5 * profiler.width_near, profiler.fan_slope)
 
 
 def trace_depth_fast(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -41,9 +41,9 @@ def set_realtime(priority: int) -> str:
     return f"SCHED_FIFO {priority} on {len(threads)} threads"
 
 
-def realtime_from_parameters(nodes) -> str | None:
-    """Apply the `realtime_priority` of the process's nodes (one node, or the composed ones: the highest
-    asked, since it applies to every thread); the outcome, or None if no node declares it."""
+def realtime_from_parameters(nodes: list) -> str | None:
+    """Apply the `realtime_priority` of the process's nodes (composed, the highest asked: it applies to
+    every thread); the outcome, or None if no node declares it."""
     asked = [int(node.get_parameter("realtime_priority").value)
-             for node in (nodes if isinstance(nodes, list) else [nodes]) if node.has_parameter("realtime_priority")]
+             for node in nodes if node.has_parameter("realtime_priority")]
     return set_realtime(max(asked)) if asked else None

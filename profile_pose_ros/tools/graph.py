@@ -139,11 +139,7 @@ class Graph:
 
     def start(self, executable: str, params: dict | None = None, name: str | None = None) -> subprocess.Popen:
         name = name or executable
-        if executable not in self._launcher:
-            self._launcher[executable] = launcher(executable)
-        command = [*self._launcher[executable], "--ros-args"]
-        if self.namespace:
-            command += ["-r", f"__ns:=/{self.namespace}"]
+        command = self._ros_command(executable)
         if self.params_file is None:
             command += ros_params(params or {})
         else:  # a file's node block beats `-p`; a later file beats an earlier one
@@ -160,11 +156,7 @@ class Graph:
         """cell_container (the loop's four nodes in one process), each node with its own parameters: a
         file with one block per node name, since `-p` would give every node the same value (`port` is
         the driver's profiler port and the bridge's controller port)."""
-        if name not in self._launcher:
-            self._launcher[name] = launcher(name)
-        command = [*self._launcher[name], "--ros-args"]
-        if self.namespace:
-            command += ["-r", f"__ns:=/{self.namespace}"]
+        command = self._ros_command(name)
         if self.params_file is not None:
             command += ["--params-file", str(self.params_file)]
         blocks = {f"/**/{node}": {"ros__parameters": dict(params)} for node, params in node_params.items()}
@@ -174,6 +166,15 @@ class Graph:
             f.write(yaml.safe_dump({node: {"ros__parameters": dict(params)} for node, params in node_params.items()},
                                    sort_keys=False))
         return self._record_and_launch(name, command)
+
+    def _ros_command(self, executable: str) -> list[str]:
+        """How to run `executable` (launcher()), up to its ROS arguments: the namespace, if any."""
+        if executable not in self._launcher:
+            self._launcher[executable] = launcher(executable)
+        command = [*self._launcher[executable], "--ros-args"]
+        if self.namespace:
+            command += ["-r", f"__ns:=/{self.namespace}"]
+        return command
 
     def _record_and_launch(self, name: str, command: list[str]) -> subprocess.Popen:
         with open(self.log_dir / "commands.txt", "a") as f:

@@ -110,7 +110,8 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
     stages = ({name: summary(v) for name, v in latencies.items()} if observer == "dds"
               else reports.summaries())
     return {"rate_hz": rate_hz, "control_hz": control_hz, "seconds": seconds, "refine_model": refine_model,
-            "observer": observer, "composed": composed, "stages_ms": stages, "cpu_percent": cpu_share, "diagnostics": diagnostics}
+            "observer": observer, "composed": composed, "stages_ms": stages, "cpu_percent": cpu_share,
+            "diagnostics": diagnostics}
 
 
 def print_table(results: list[dict]) -> None:
