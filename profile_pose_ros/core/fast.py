@@ -44,21 +44,27 @@ def _rdp(px, pz, epsilon, keep, stack, scratch):
         # argmax of |cross| is argmax of the distance (length is constant): no division per point
         best = -1.0
         split = -1
+        # Loops over views from 0, not range(first + 1, last): an index numba cannot prove non-negative
+        # gets a wraparound check that stops LLVM vectorising (3x slower here).
+        x = px[first + 1:last]
+        z = pz[first + 1:last]
         if length > 0:
             # two passes: |cross| vectorises, the argmax then only compares
-            for i in range(first + 1, last):
-                scratch[i] = abs(c0 * (pz[i] - az) - c1 * (px[i] - ax))
-            for i in range(first + 1, last):
-                if scratch[i] > best:
-                    best = scratch[i]
+            distance = scratch[:last - first - 1]
+            for i in range(x.shape[0]):
+                distance[i] = abs(c0 * (z[i] - az) - c1 * (x[i] - ax))
+            for i in range(x.shape[0]):
+                if distance[i] > best:
+                    best = distance[i]
                     split = i
             best = best / length
         else:
-            for i in range(first + 1, last):
-                d = math.hypot(px[i] - ax, pz[i] - az)
+            for i in range(x.shape[0]):
+                d = math.hypot(x[i] - ax, z[i] - az)
                 if d > best:
                     best = d
                     split = i
+        split += first + 1
         if best > epsilon:
             keep[split] = True
             stack[2 * top] = first
