@@ -3,6 +3,7 @@ reasons, and the same numbers within 1e-12 m (the refined pose is a Gauss-Newton
 land on it to rounding)."""
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from profile_pose_ros.core import estimate_pose, render_profile, sample_pose, true_corners
 from profile_pose_ros.core.gauge_design import heightfield_gauge
@@ -151,3 +152,23 @@ def test_compiled_detection_equals_detect_corners(rng):
                                                rtol=1e-9, atol=1e-30)
     empty = np.full((50, 2), np.nan)
     assert detect_corners_compiled(empty, 5).reason == detect_corners(empty, 5).reason
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(1e-9, 0.3), st.floats(0.2, 5.0))
+@settings(max_examples=200, deadline=None)
+def test_polar_rotation_is_the_svd_s_nearest_rotation(seed, noise, scale):
+    """The closed form's projection onto SO(3) without LAPACK: U V^T of the SVD to rounding, or it declines."""
+    from scipy.spatial.transform import Rotation
+
+    from profile_pose_ros.core import fast
+
+    rng = np.random.default_rng(seed)
+    m = scale * (Rotation.random(random_state=seed).as_matrix() + rng.normal(0.0, noise, (3, 3)))
+    out = np.full((3, 3), np.nan)
+    u, _, vt = np.linalg.svd(m)
+    if fast._polar_rotation(m, out):
+        assert np.max(np.abs(out - u @ vt)) < 1e-13
+        assert np.linalg.det(m) > 0
+    else:  # only for a reflection, which the SVD path then handles
+        assert np.linalg.det(m) <= 0
+    assert not fast._polar_rotation(-m, out) or np.linalg.det(-m) > 0

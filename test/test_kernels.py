@@ -4,9 +4,11 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from profile_pose_ros.core import EstimatorOptions, render_profile, sample_pose
 from profile_pose_ros.core import aot, fast
+from profile_pose_ros.core.estimator import position_sigma
 from profile_pose_ros.core.fast_wrapper import option_vector
 
 
@@ -27,10 +29,12 @@ def test_prebuilt_and_jit_kernels_agree(gauge, rng):
         (status_a, outs_a), (status_j, outs_j) = run(module.estimate, points, gauge, opt), run(fast.estimate, points,
                                                                                               gauge, opt)
         assert status_a[0] == status_j[0] == 0
+        # the compiled largest position standard deviation is estimator.position_sigma's
+        assert status_a[5] == status_j[5] == pytest.approx(position_sigma(outs_a[3][:3, :3]), rel=1e-12)
         for a, j in zip(outs_a, outs_j):
             assert np.allclose(a, j, rtol=1e-12, atol=1e-15, equal_nan=True)
     status, _ = run(module.estimate, np.full((100, 2), np.nan), gauge, opt)
-    assert status[0] != 0
+    assert status[0] != 0 and np.isnan(status[5])
 
 
 def test_node_side_import_does_not_load_numba(gauge):

@@ -102,7 +102,7 @@ def build_into(directory: Path) -> None:
     f8 = types.float64
     array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
     frozen2, frozen1 = types.Array(f8, 2, "C", readonly=True), types.Array(f8, 1, "C", readonly=True)
-    signature = types.Tuple((types.int64, types.int64, f8, f8, f8))(
+    signature = types.Tuple((types.int64, types.int64, f8, f8, f8, f8))(
         array2, frozen2, frozen1, frozen1, f8, f8, frozen1, array2, array2, array1, array2, array2, array1, array2,
         array2, array1)
     compiler = CC(MODULE)

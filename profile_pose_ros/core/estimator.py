@@ -69,6 +69,7 @@ class PoseEstimate:
     fit_rms: float = float("nan")  # m, rms residual of the face line fits
     timings: dict = field(default_factory=dict)  # seconds per stage
     search_starts: int = 0  # starting poses tried by the basin search (0: the pose was well determined)
+    position_sigma: float | None = None  # position_sigma(covariance[:3, :3]) when the compiled path computed it
 
 
 def ros_covariance(rotation: np.ndarray, local: np.ndarray) -> np.ndarray:
@@ -140,7 +141,9 @@ def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> Pos
     """The estimate, or a rejection when its position is too poorly determined to trust its covariance."""
     if not estimate.ok:
         return estimate
-    sigma = position_sigma(estimate.covariance[:3, :3])  # NaN (kept) when the covariance is not finite
+    sigma = estimate.position_sigma
+    if sigma is None:
+        sigma = position_sigma(estimate.covariance[:3, :3])  # NaN (kept) when the covariance is not finite
     if sigma > options.max_position_sigma:
         return _rejected(estimate, reason_poorly_determined(sigma, options))
     return estimate
@@ -149,7 +152,7 @@ def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> Pos
 def _rejected(estimate: PoseEstimate, reason: str, **changes) -> PoseEstimate:
     """The estimate turned into a rejection: no pose, the corner results kept for diagnosis."""
     return replace(estimate, ok=False, reason=reason, R=np.full((3, 3), np.nan), t=np.full(3, np.nan),
-                   covariance=np.full((6, 6), np.nan), **changes)
+                   covariance=np.full((6, 6), np.nan), position_sigma=None, **changes)
 
 
 def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate,
@@ -172,7 +175,8 @@ def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, e
     if reason:
         return _rejected(estimate, f"dense refinement: {reason}", timings=timings)
     return replace(estimate, R=dense.rotation, t=dense.translation, reprojection_error=solution.reprojection_error,
-                   covariance=ros_covariance(dense.rotation, dense.covariance_local), timings=timings)
+                   covariance=ros_covariance(dense.rotation, dense.covariance_local), timings=timings,
+                   position_sigma=None)
 
 
 def position_sigma(position_covariance: np.ndarray) -> float:

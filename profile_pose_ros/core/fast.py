@@ -537,6 +537,35 @@ def _householder_lstsq(a, b, x):
 
 
 @njit(**JIT)
+def _polar_rotation(m, out):
+    """out = U V^T of m = U S V^T (the rotation nearest m) by Newton's polar iteration A <- (A + A^-T) / 2,
+    when det(m) > 0 and it converges: the same rotation as the SVD's to rounding, without LAPACK's
+    ~4 us a call for a 3 x 3. False otherwise (a reflection is nearer, or m is near singular): use the SVD."""
+    a = np.empty((3, 3))
+    cof = np.empty((3, 3))
+    a[:, :] = m
+    for _ in range(30):
+        for i in range(3):
+            i1, i2 = (i + 1) % 3, (i + 2) % 3
+            for j in range(3):
+                j1, j2 = (j + 1) % 3, (j + 2) % 3
+                cof[i, j] = a[i1, j1] * a[i2, j2] - a[i1, j2] * a[i2, j1]
+        det = a[0, 0] * cof[0, 0] + a[0, 1] * cof[0, 1] + a[0, 2] * cof[0, 2]
+        if not det > 0.0:
+            return False
+        change = 0.0
+        for i in range(3):
+            for j in range(3):
+                new = 0.5 * (a[i, j] + cof[i, j] / det)  # A^-T = cofactor matrix / det
+                change = max(change, abs(new - a[i, j]))
+                a[i, j] = new
+        if change <= 1e-15:  # quadratic convergence: the previous step was already at rounding level
+            out[:, :] = a
+            return True
+    return False
+
+
+@njit(**JIT)
 def _closed_form(q, u, w, corners, info):
     """Paper eqs. (9)-(14), the least squares by Householder QR. Returns (status, R, t)."""
     n = corners.shape[0]
@@ -577,12 +606,13 @@ def _closed_form(q, u, w, corners, info):
     norm_hat = math.sqrt(np.sum(r_hat * r_hat))
     if not math.isfinite(norm_hat) or norm_hat == 0:
         return CF_DEGENERATE, rot, t
-    uu, _, vt = np.linalg.svd(r_hat)
-    _matmul3(uu, vt, rot)
-    if np.linalg.det(rot) < 0:
-        for i in range(3):
-            uu[i, 2] = -uu[i, 2]
+    if not _polar_rotation(r_hat, rot):
+        uu, _, vt = np.linalg.svd(r_hat)
         _matmul3(uu, vt, rot)
+        if np.linalg.det(rot) < 0:
+            for i in range(3):
+                uu[i, 2] = -uu[i, 2]
+            _matmul3(uu, vt, rot)
     scale = math.sqrt(np.sum(rot * rot)) / norm_hat
     for k in range(3):
         t[k] *= scale
@@ -717,9 +747,31 @@ def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, 
 
 
 @njit(**JIT)
+def _position_sigma(cov):
+    """estimator.position_sigma of cov[:3, :3], compiled: every accepted pose is checked against it."""
+    a, b, c, d, e, f = cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 1], cov[1, 2], cov[2, 2]
+    for v in (a, b, c, d, e, f):
+        if not math.isfinite(v):
+            return np.nan
+    off = b * b + c * c + e * e
+    mean = (a + d + f) / 3.0
+    spread = ((a - mean) ** 2 + (d - mean) ** 2 + (f - mean) ** 2 + 2.0 * off) / 6.0
+    if spread <= 0.0:
+        largest = mean
+    else:
+        p = math.sqrt(spread)
+        a, d, f = (a - mean) / p, (d - mean) / p, (f - mean) / p
+        b, c, e = b / p, c / p, e / p
+        half_det = (a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c)) / 2.0
+        largest = mean + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, half_det))) / 3.0)
+    return math.sqrt(max(largest, 0.0))
+
+
+@njit(**JIT)
 def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
              info):
-    """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error)."""
+    """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,
+    position_sigma); the last is NaN unless a pose is accepted."""
     n = u.shape[0]
     rot_out[:, :] = np.nan  # stays NaN unless a pose is accepted
     t_out[:] = np.nan
@@ -728,10 +780,10 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
     line_var = np.empty(2 * (n + 1))
     status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info, np.empty((n + 1, 10)))
     if status != OK:
-        return status, 0, np.nan, np.nan, np.nan
+        return status, 0, np.nan, np.nan, np.nan, np.nan
     status, rot, t = _closed_form(q, u, w, corners, info)
     if status != OK:
-        return status, 0, fit_rms, np.nan, np.nan
+        return status, 0, fit_rms, np.nan, np.nan, np.nan
     cf_rot[:, :] = rot
     cf_t[:] = t
     r = np.empty(2 * n)
@@ -749,18 +801,18 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
     status, rot2, t2, r2, iterations = _refine(q, u, w, corners, rot, t, corner_cov, opt[O_WEIGHTED] > 0, max_it,
                                                True, cov)
     if status != OK:
-        return status, iterations, fit_rms, np.nan, cf_err
+        return status, iterations, fit_rms, np.nan, cf_err, np.nan
     if opt[O_REFINE] > 0:
         rot, t, r = rot2, t2, r2
     err = _unstack_residuals(r, res_out)
     for v in rot.ravel():
         if not math.isfinite(v):
-            return NOT_FINITE, iterations, fit_rms, err, cf_err
+            return NOT_FINITE, iterations, fit_rms, err, cf_err, np.nan
     for v in t:
         if not math.isfinite(v):
-            return NOT_FINITE, iterations, fit_rms, err, cf_err
+            return NOT_FINITE, iterations, fit_rms, err, cf_err, np.nan
     if not err <= opt[O_MAXREPROJ]:
-        return REPROJECTION, iterations, fit_rms, err, cf_err
+        return REPROJECTION, iterations, fit_rms, err, cf_err, np.nan
     half_w = width / 2 + opt[O_MARGIN]
     half_l = length / 2 + opt[O_MARGIN]
     for i in range(n):
@@ -770,7 +822,7 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
             info[0] = i
             info[1] = mx
             info[2] = my
-            return OUTSIDE_FOOTPRINT, iterations, fit_rms, err, cf_err
+            return OUTSIDE_FOOTPRINT, iterations, fit_rms, err, cf_err, np.nan
     rot_out[:, :] = rot
     t_out[:] = t
     # [delta_F, t] -> ROS [t, delta_G = R delta_F]: cov_ros = T cov T^T, T = [[0, I], [R, 0]]
@@ -788,4 +840,4 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
                 for j in range(6):
                     acc += rr[a, i] * cov[i, j] * rr[b, j]
             cov_out[a, b] = acc
-    return OK, iterations, fit_rms, err, cf_err
+    return OK, iterations, fit_rms, err, cf_err, _position_sigma(cov_out)

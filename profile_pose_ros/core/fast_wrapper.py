@@ -18,7 +18,7 @@ from . import fast_codes as fast
 from .corners import (REASON_CORNERS_NOT_INCREASING, ROBUST_PASSES, REASON_X_NOT_INCREASING, CornerOptions,
                       CornerResult, LineFit, reason_corner_count, reason_corner_not_between, reason_steep_segment,
                       reason_too_few_points)
-from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, Stages, estimate_plain, position_sigma,
+from .estimator import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, Stages, estimate_plain,
                         reason_outside, reason_reprojection)
 from .dense import DenseOptions, DenseResult
 from .gauge import Gauge
@@ -213,7 +213,7 @@ def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -
     info = np.zeros(4)
     start = time.perf_counter()
     try:
-        status, iterations, fit_rms, error, cf_error = kernel()(
+        status, iterations, fit_rms, error, cf_error, sigma = kernel()(
             points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, option_vector(options), corners, rot, t,
             cov, cf_rot, cf_t, cf_res, res, info)
     except np.linalg.LinAlgError as exc:
@@ -226,13 +226,14 @@ def estimate_fast(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -
         return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
     ok = status == fast.OK
     if options.search and options.refine and (status in (fast.REPROJECTION, fast.OUTSIDE_FOOTPRINT) or (
-            ok and position_sigma(cov[:3, :3]) > options.search_min_sigma)):
+            ok and sigma > options.search_min_sigma)):
         # poorly determined, or perhaps in a wrong basin: the numpy path, whose basin search decides
         return estimate_plain(points, gauge, options, COMPILED)
     return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
                         corners=corners, reprojection_error=error, covariance=cov,
                         closed_form=PoseSolution(cf_rot, cf_t, cf_res), refined=options.refine,
-                        iterations=iterations, fit_rms=fit_rms, timings=timings)
+                        iterations=iterations, fit_rms=fit_rms, timings=timings,
+                        position_sigma=sigma if ok else None)
 
 
 def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
