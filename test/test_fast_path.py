@@ -172,3 +172,23 @@ def test_polar_rotation_is_the_svd_s_nearest_rotation(seed, noise, scale):
     else:  # only for a reflection, which the SVD path then handles
         assert np.linalg.det(m) <= 0
     assert not fast._polar_rotation(-m, out) or np.linalg.det(-m) > 0
+
+
+@given(st.integers(0, 2**32 - 1), st.integers(3, 400), st.sampled_from([0.0, 1e-6, 5e-5]),
+       st.sampled_from([1e-5, 3e-4, 2e-3]))
+@settings(max_examples=300, deadline=None)
+def test_compiled_rdp_keeps_the_reference_s_vertices(seed, n, noise, epsilon):
+    """fast._rdp (vectorised passes, argmax by bit pattern) against rdp.rdp_vertices, ties included: a
+    noiseless polyline has many equal distances, and both must split at the first."""
+    from profile_pose_ros.core import fast
+    from profile_pose_ros.core.rdp import rdp_vertices
+
+    rng = np.random.default_rng(seed)
+    x = np.sort(rng.uniform(-0.05, 0.05, n)) + np.arange(n) * 1e-9  # strictly increasing, as detection needs
+    knots = np.sort(rng.uniform(-0.05, 0.05, 4))
+    z = np.interp(x, knots, rng.uniform(0.0, 0.02, 4)) + rng.normal(0.0, noise, n)
+    if rng.random() < 0.3:
+        z = np.round(z, 4)  # plateaus: equal distances
+    keep, stack, scratch = np.empty(n, dtype=np.bool_), np.empty(2 * n + 4, dtype=np.int64), np.empty(n)
+    fast._rdp(x, z, epsilon, keep, stack, scratch)
+    assert np.array_equal(np.nonzero(keep)[0], rdp_vertices(np.column_stack([x, z]), epsilon))

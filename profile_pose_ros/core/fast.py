@@ -49,15 +49,21 @@ def _rdp(px, pz, epsilon, keep, stack, scratch):
         x = px[first + 1:last]
         z = pz[first + 1:last]
         if length > 0:
-            # two passes: |cross| vectorises, the argmax then only compares
+            # |cross| in one vectorised pass; its first argmax in two more: the maximum of the values' bit
+            # patterns (non-negative doubles order as their int64 bits, and an integer max vectorises where a
+            # float compare-and-keep-index does not), then the first index holding it.
             distance = scratch[:last - first - 1]
             for i in range(x.shape[0]):
                 distance[i] = abs(c0 * (z[i] - az) - c1 * (x[i] - ax))
-            for i in range(x.shape[0]):
-                if distance[i] > best:
-                    best = distance[i]
+            bits = distance.view(np.int64)
+            top_bits = np.int64(-1)
+            for i in range(bits.shape[0]):
+                top_bits = max(top_bits, bits[i])
+            for i in range(bits.shape[0]):
+                if bits[i] == top_bits:
                     split = i
-            best = best / length
+                    break
+            best = distance[split] / length
         else:
             for i in range(x.shape[0]):
                 d = math.hypot(x[i] - ax, z[i] - az)
@@ -75,8 +81,62 @@ def _rdp(px, pz, epsilon, keep, stack, scratch):
 
 
 @njit(**JIT)
-def _fit_line(px, pz, first, last, opt, out, k):
-    """Fill out[k] = (first, last, slope, x_mean, z_mean, sxx, n_used, sigma, x_min, x_max)."""
+def _lane_dot(a, b):
+    """sum(a * b) with four accumulators: one accumulator waits on the add's latency at every element."""
+    m = a.shape[0]
+    s0 = s1 = s2 = s3 = 0.0
+    i = 0
+    while i + 4 <= m:
+        s0 += a[i] * b[i]
+        s1 += a[i + 1] * b[i + 1]
+        s2 += a[i + 2] * b[i + 2]
+        s3 += a[i + 3] * b[i + 3]
+        i += 4
+    for j in range(i, m):
+        s0 += a[j] * b[j]
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit(**JIT)
+def _lane_sums(a, b):
+    """(sum(a), sum(b)) in one pass, four accumulators each (see _lane_dot)."""
+    m = a.shape[0]
+    a0 = a1 = a2 = a3 = 0.0
+    b0 = b1 = b2 = b3 = 0.0
+    i = 0
+    while i + 4 <= m:
+        a0 += a[i]
+        a1 += a[i + 1]
+        a2 += a[i + 2]
+        a3 += a[i + 3]
+        b0 += b[i]
+        b1 += b[i + 1]
+        b2 += b[i + 2]
+        b3 += b[i + 3]
+        i += 4
+    for j in range(i, m):
+        a0 += a[j]
+        b0 += b[j]
+    return (a0 + a1) + (a2 + a3), (b0 + b1) + (b2 + b3)
+
+
+@njit(**JIT)
+def _largest(values):
+    """max(values) for values >= 0, vectorised through the bit patterns (see _rdp)."""
+    bits = values.view(np.int64)
+    top = np.int64(0)
+    for i in range(bits.shape[0]):
+        top = max(top, bits[i])
+    return np.array([top]).view(np.float64)[0]
+
+
+@njit(**JIT)
+def _fit_line(px, pz, first, last, opt, out, k, work, index_work):
+    """Fill out[k] = (first, last, slope, x_mean, z_mean, sxx, n_used, sigma, x_min, x_max).
+
+    corners.fit_line's steps. The rejected points are few, so the sums run over every point (vectorised
+    passes, four accumulators) and the rejected points' terms are then taken off. work ((3, >= m) float)
+    and index_work ((2, >= m) int64) are scratch, allocated once per profile by the caller."""
     count = last - first + 1
     trim = int(opt[O_TRIM] * count)
     lo = first + trim
@@ -87,9 +147,12 @@ def _fit_line(px, pz, first, last, opt, out, k):
     m = hi - lo
     x = px[lo:hi]
     z = pz[lo:hi]
-    keep = np.ones(m, dtype=np.bool_)
-    new_keep = np.empty(m, dtype=np.bool_)
-    absres = np.empty(m)
+    dev = work[0, :m]  # x - x_mean
+    res = work[1, :m]  # z - z_mean, then |residual|
+    rejected = index_work[0, :m]  # indices into x, ascending
+    new_rejected = index_work[1, :m]
+    n_rejected = 0
+    sum_x, sum_z = _lane_sums(x, z)
     slope = 0.0
     x_mean = 0.0
     z_mean = 0.0
@@ -97,37 +160,32 @@ def _fit_line(px, pz, first, last, opt, out, k):
     n_used = 0
     passes = int(opt[O_PASSES]) if opt[O_ROBUST] > 0 else 1
     for iteration in range(passes):
-        cnt = 0
-        sx = 0.0
-        sz = 0.0
-        for i in range(m):
-            if keep[i]:
-                cnt += 1
-                sx += x[i]
-                sz += z[i]
+        cnt = m - n_rejected
+        sx = sum_x
+        sz = sum_z
+        for j in range(n_rejected):
+            sx -= x[rejected[j]]
+            sz -= z[rejected[j]]
         xm = sx / cnt
         zm = sz / cnt
-        s = 0.0
-        sxz = 0.0
         for i in range(m):
-            if keep[i]:
-                dx = x[i] - xm
-                s += dx * dx
-                sxz += dx * (z[i] - zm)
+            dev[i] = x[i] - xm
+            res[i] = z[i] - zm
+        s = _lane_dot(dev, dev)
+        sxz = _lane_dot(dev, res)
+        for j in range(n_rejected):
+            d = dev[rejected[j]]
+            s -= d * d
+            sxz -= d * res[rejected[j]]
         if s <= 0:
             break
         sl = sxz / s
         slope, x_mean, z_mean, sxx, n_used = sl, xm, zm, s, cnt
         if iteration == passes - 1:
             break
-        na = 0
-        largest = 0.0
         for i in range(m):
-            r = abs(z[i] - (slope * (x[i] - x_mean) + z_mean))
-            largest = max(largest, r)
-            if keep[i]:
-                absres[na] = r
-                na += 1
+            res[i] = abs(z[i] - (slope * dev[i] + z_mean))
+        largest = _largest(res)
         # The rule keeps |r| <= max(thr * 1.4826 * median, floor). If that bound provably exceeds the
         # largest residual, every point is kept and the median need not be computed: median >= c holds
         # when fewer than half of the kept |r| are below c (exact, O(n)); rounding is monotonic.
@@ -135,35 +193,47 @@ def _fit_line(px, pz, first, last, opt, out, k):
         all_kept = max(opt[O_THR] * (1.4826 * c), opt[O_FLOOR]) >= largest
         if all_kept and opt[O_FLOOR] < largest:
             below = 0
-            for i in range(na):
-                if absres[i] < c:
-                    below += 1
-            all_kept = below <= (na - 1) // 2
+            for i in range(m):
+                below += res[i] < c
+            for j in range(n_rejected):
+                below -= res[rejected[j]] < c
+            all_kept = below <= (cnt - 1) // 2
         if all_kept:
             limit = np.inf
         else:
-            scale = 1.4826 * np.median(absres[:na])
-            limit = max(opt[O_THR] * scale, opt[O_FLOOR])
-        same = True
-        total = 0
+            kept = work[2, :cnt]
+            at = 0
+            j = 0
+            for i in range(m):
+                if j < n_rejected and rejected[j] == i:
+                    j += 1
+                else:
+                    kept[at] = res[i]
+                    at += 1
+            limit = max(opt[O_THR] * (1.4826 * np.median(kept)), opt[O_FLOOR])
+        n_new = 0
         for i in range(m):
-            r = z[i] - (slope * (x[i] - x_mean) + z_mean)
-            new_keep[i] = abs(r) <= limit
-            if new_keep[i]:
-                total += 1
-            if new_keep[i] != keep[i]:
-                same = False
-        if same or total < 2:
+            if not res[i] <= limit:
+                new_rejected[n_new] = i
+                n_new += 1
+        same = n_new == n_rejected
+        if same:
+            for j in range(n_new):
+                if new_rejected[j] != rejected[j]:
+                    same = False
+                    break
+        if same or m - n_new < 2:
             break
-        keep[:] = new_keep
+        rejected, new_rejected = new_rejected, rejected
+        n_rejected = n_new
     sigma = 0.0
     if n_used > 2:
-        ss = 0.0
         for i in range(m):
-            if keep[i]:
-                r = z[i] - (slope * (x[i] - x_mean) + z_mean)
-                ss += r * r
-        sigma = math.sqrt(ss / (n_used - 2))
+            res[i] = z[i] - (slope * (x[i] - x_mean) + z_mean)
+        ss = _lane_dot(res, res)
+        for j in range(n_rejected):
+            ss -= res[rejected[j]] * res[rejected[j]]
+        sigma = math.sqrt(max(ss, 0.0) / (n_used - 2))
     out[k, 0] = first
     out[k, 1] = last
     out[k, 2] = slope
@@ -208,12 +278,14 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
         if keep[i]:
             n_vertices += 1
     lines = np.empty((max(n_vertices - 1, 1), 10))
+    work = np.empty((3, n))
+    index_work = np.empty((2, n), dtype=np.int64)
     count = 0
     prev = -1
     for i in range(n):
         if keep[i]:
             if prev >= 0 and i - prev + 1 >= min_seg:
-                _fit_line(px, pz, prev, i, opt, lines, count)
+                _fit_line(px, pz, prev, i, opt, lines, count, work, index_work)
                 count += 1
             prev = i
     # merge nearly collinear neighbours, closest pair first
@@ -229,7 +301,7 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
                 j = k
         if not best < opt[O_MINANGLE]:
             break
-        _fit_line(px, pz, int(lines[j, 0]), int(lines[j + 1, 1]), opt, lines, j)
+        _fit_line(px, pz, int(lines[j, 0]), int(lines[j + 1, 1]), opt, lines, j, work, index_work)
         for k in range(j + 1, count - 1):
             lines[k, :] = lines[k + 1, :]
         count -= 1
