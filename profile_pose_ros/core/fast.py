@@ -471,17 +471,27 @@ def _cholesky_solve(low, b, x):
 
 @njit(**JIT)
 def _spd_inverse(a, out):
+    """out = a^-1 for a symmetric positive definite a, as L^-T L^-1 from its Cholesky factor (half the
+    work of n triangular solves); False if a is not positive definite."""
     n = a.shape[0]
     low = np.empty((n, n))
     if not _cholesky(a, low):
         return False
-    e = np.zeros(n)
-    col = np.empty(n)
+    inv = np.zeros((n, n))  # L^-1, lower triangular
     for j in range(n):
-        e[:] = 0.0
-        e[j] = 1.0
-        _cholesky_solve(low, e, col)
-        out[:, j] = col
+        inv[j, j] = 1.0 / low[j, j]
+        for i in range(j + 1, n):
+            s = 0.0
+            for k in range(j, i):
+                s -= low[i, k] * inv[k, j]
+            inv[i, j] = s / low[i, i]
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(i, n):  # (L^-T L^-1)[i, j] = sum_k inv[k, i] inv[k, j], k >= max(i, j)
+                s += inv[k, i] * inv[k, j]
+            out[i, j] = s
+            out[j, i] = s
     return True
 
 
@@ -528,18 +538,24 @@ def _matmul3(a, b, out):
 
 @njit(**JIT)
 def _so3_exp(v, out):
-    theta2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
-    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    kk = np.empty((3, 3))
-    _matmul3(k, k, kk)
+    """Rodrigues: I + a K + b K^2 with K = [v]x, written out (no temporaries: it runs every iteration)."""
+    x, y, z = v[0], v[1], v[2]
+    theta2 = x * x + y * y + z * z
     if theta2 < 1e-16:
         a, b = 1.0, 0.5
     else:
         theta = math.sqrt(theta2)
         a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta2
-    for i in range(3):
-        for j in range(3):
-            out[i, j] = (1.0 if i == j else 0.0) + a * k[i, j] + b * kk[i, j]
+    # K^2 = v v^T - theta2 I
+    out[0, 0] = 1.0 + b * (x * x - theta2)
+    out[1, 1] = 1.0 + b * (y * y - theta2)
+    out[2, 2] = 1.0 + b * (z * z - theta2)
+    out[0, 1] = -a * z + b * x * y
+    out[1, 0] = a * z + b * x * y
+    out[0, 2] = a * y + b * x * z
+    out[2, 0] = -a * y + b * x * z
+    out[1, 2] = -a * x + b * y * z
+    out[2, 1] = a * x + b * y * z
 
 
 @njit(**JIT)
@@ -698,6 +714,8 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
     Returns (status, R, t, residuals, iterations); cov_out gets the (6, 6) covariance over [delta_F, t].
     """
     n2 = 2 * corners.shape[0]
+    rot = rot.copy()  # the current pose, updated in place: the loop allocates nothing
+    t = t.copy()
     r = np.empty(n2)
     new_r = np.empty(n2)
     _residuals(q, u, w, corners, rot, t, r)
@@ -743,11 +761,15 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
             new_t[k] = t[k] + step[3 + k]
         _residuals(q, u, w, corners, new_rot, new_t, new_r)
         new_cost = _quadratic(new_r, weight)
-        biggest = np.max(np.abs(step))
+        biggest = 0.0
+        for k in range(6):
+            biggest = max(biggest, abs(step[k]))
         if polishing:
             if new_cost > cost * (1.0 + POLISH_COST_TOLERANCE):
                 break
-            rot, t, cost = new_rot.copy(), new_t.copy(), new_cost
+            rot[:, :] = new_rot
+            t[:] = new_t
+            cost = new_cost
             r[:] = new_r
             if biggest < POLISH_STEP_TOLERANCE:
                 break
@@ -755,7 +777,9 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
         iterations = it
         if new_cost <= cost:
             converged = cost - new_cost <= POLISH_COST_TOLERANCE * cost
-            rot, t, cost = new_rot.copy(), new_t.copy(), new_cost
+            rot[:, :] = new_rot
+            t[:] = new_t
+            cost = new_cost
             r[:] = new_r
             damping = max(damping / 10.0, 1e-12)
             if converged or biggest < 1e-13:
