@@ -21,6 +21,21 @@ from .fast_codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT
 
 # ----------------------------------------------------------------------------- corner detection
 @njit(**JIT)
+def _first_argmax(values):
+    """The first index of max(values), for values >= 0 (no NaN), in two passes that beat one
+    compare-and-keep-index pass: the maximum of the bit patterns (non-negative doubles order as their
+    int64 bits, and an integer max vectorises), then the first index holding it."""
+    bits = values.view(np.int64)
+    top = np.int64(0)
+    for i in range(bits.shape[0]):
+        top = max(top, bits[i])
+    for i in range(bits.shape[0]):
+        if bits[i] == top:
+            return i
+    return -1  # empty
+
+
+@njit(**JIT)
 def _rdp(px, pz, epsilon, keep, stack, scratch):
     n = px.shape[0]
     keep[:n] = False
@@ -49,20 +64,10 @@ def _rdp(px, pz, epsilon, keep, stack, scratch):
         x = px[first + 1:last]
         z = pz[first + 1:last]
         if length > 0:
-            # |cross| in one vectorised pass; its first argmax in two more: the maximum of the values' bit
-            # patterns (non-negative doubles order as their int64 bits, and an integer max vectorises where a
-            # float compare-and-keep-index does not), then the first index holding it.
-            distance = scratch[:last - first - 1]
+            distance = scratch[:last - first - 1]  # |cross|: one vectorised pass
             for i in range(x.shape[0]):
                 distance[i] = abs(c0 * (z[i] - az) - c1 * (x[i] - ax))
-            bits = distance.view(np.int64)
-            top_bits = np.int64(-1)
-            for i in range(bits.shape[0]):
-                top_bits = max(top_bits, bits[i])
-            for i in range(bits.shape[0]):
-                if bits[i] == top_bits:
-                    split = i
-                    break
+            split = _first_argmax(distance)
             best = distance[split] / length
         else:
             for i in range(x.shape[0]):
@@ -121,16 +126,6 @@ def _lane_sums(a, b):
 
 
 @njit(**JIT)
-def _largest(values):
-    """max(values) for values >= 0, vectorised through the bit patterns (see _rdp)."""
-    bits = values.view(np.int64)
-    top = np.int64(0)
-    for i in range(bits.shape[0]):
-        top = max(top, bits[i])
-    return np.array([top]).view(np.float64)[0]
-
-
-@njit(**JIT)
 def _fit_line(px, pz, first, last, opt, out, k, work, index_work):
     """Fill out[k] = (first, last, slope, x_mean, z_mean, sxx, n_used, sigma, x_min, x_max).
 
@@ -185,7 +180,7 @@ def _fit_line(px, pz, first, last, opt, out, k, work, index_work):
             break
         for i in range(m):
             res[i] = abs(z[i] - (slope * dev[i] + z_mean))
-        largest = _largest(res)
+        largest = res[_first_argmax(res)]
         # The rule keeps |r| <= max(thr * 1.4826 * median, floor). If that bound provably exceeds the
         # largest residual, every point is kept and the median need not be computed: median >= c holds
         # when fewer than half of the kept |r| are below c (exact, O(n)); rounding is monotonic.
