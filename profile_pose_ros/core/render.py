@@ -10,6 +10,7 @@ the camera's view (out of the laser plane) is not modelled.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -32,9 +33,12 @@ class ProfilerModel:
     def x_start(self) -> float:
         return -0.5 * (self.n_points - 1) * self.x_pitch
 
-    @property
+    @cached_property
     def x(self) -> np.ndarray:
-        return self.x_start + self.x_pitch * np.arange(self.n_points)
+        """The sample columns' x (read-only: one array shared by every render, ~5 us a build at 1 kHz)."""
+        x = self.x_start + self.x_pitch * np.arange(self.n_points)
+        x.setflags(write=False)
+        return x
 
     @property
     def fan_slope(self) -> float:
