@@ -22,17 +22,34 @@ STEP_TOLERANCE = 1e-13  # as dense.refine_dense: stop once no step component exc
 def _inliers(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor,
              jac, residual):
     """Fill the first rows of jac (N, 6) and residual (N) with the usable, inlying points (dense.py's
-    select_points, depth_model and robust cut); returns how many."""
+    select_points, depth_model and robust cut); returns how many. What depends only on the face and the
+    pose (the normal in F, the depth model's coefficients) is computed once per face, not per point."""
     n_ridges = ridge_u.shape[0]
+    n_faces = n_ridges + 1
+    # Per face, with the face's normal n and m = R^T n (the normal in F): a = m0, 1 / b = 1 / m2,
+    # c = offset - n . t, m1 / b, then -n / b (the translation columns)
+    coef = np.empty((n_faces, 7))
+    for f in range(n_faces):
+        n0, n1, n2 = normals[f, 0], normals[f, 1], normals[f, 2]
+        inv_b = 1.0 / (n0 * rot[0, 2] + n1 * rot[1, 2] + n2 * rot[2, 2])
+        coef[f, 0] = n0 * rot[0, 0] + n1 * rot[1, 0] + n2 * rot[2, 0]
+        coef[f, 1] = inv_b
+        coef[f, 2] = offsets[f] - (n0 * t[0] + n1 * t[1] + n2 * t[2])
+        coef[f, 3] = (n0 * rot[0, 1] + n1 * rot[1, 1] + n2 * rot[2, 1]) * inv_b
+        coef[f, 4] = -n0 * inv_b
+        coef[f, 5] = -n1 * inv_b
+        coef[f, 6] = -n2 * inv_b
+    half_w = width / 2
+    half_l = length / 2
     count = 0
     for i in range(points.shape[0]):
         x, z = points[i, 0], points[i, 1]
         mx = t[0] + x * rot[0, 0] + z * rot[0, 2]
         my = t[1] + x * rot[1, 0] + z * rot[1, 2]
-        if not (abs(mx) < width / 2 and abs(my) < length / 2):
+        if not (abs(mx) < half_w and abs(my) < half_l):
             continue
         face = 0
-        clearance = min(abs(mx + width / 2), abs(width / 2 - mx))
+        clearance = min(abs(mx + half_w), abs(half_w - mx))
         for k in range(n_ridges):
             ridge = ridge_q[k] + ridge_u[k] * my
             if ridge < mx:
@@ -40,21 +57,16 @@ def _inliers(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, 
             clearance = min(clearance, abs(ridge - mx))
         if not clearance > margin:
             continue
-        n0, n1, n2 = normals[face, 0], normals[face, 1], normals[face, 2]
-        a = n0 * rot[0, 0] + n1 * rot[1, 0] + n2 * rot[2, 0]
-        b = n0 * rot[0, 2] + n1 * rot[1, 2] + n2 * rot[2, 2]
-        c = offsets[face] - (n0 * t[0] + n1 * t[1] + n2 * t[2])
-        predicted = (c - x * a) / b
-        m0 = n0 * rot[0, 0] + n1 * rot[1, 0] + n2 * rot[2, 0]  # the normal in F
-        m1 = n0 * rot[0, 1] + n1 * rot[1, 1] + n2 * rot[2, 1]
-        m2 = n0 * rot[0, 2] + n1 * rot[1, 2] + n2 * rot[2, 2]
-        # d a / d delta = -(m x e1) = (0, -m2, m1); d b / d delta = -(m x e3) = (-m1, m0, 0)
-        jac[count, 0] = -(predicted / b) * -m1
-        jac[count, 1] = (-x * -m2) / b - (predicted / b) * m0
-        jac[count, 2] = (-x * m1) / b
-        jac[count, 3] = -n0 / b
-        jac[count, 4] = -n1 / b
-        jac[count, 5] = -n2 / b
+        a, inv_b, m1_b = coef[face, 0], coef[face, 1], coef[face, 3]
+        predicted = (coef[face, 2] - x * a) * inv_b  # depth where the ray x meets the face: (c - x a) / b
+        # d a / d delta = -(m x e1) = (0, -m2, m1); d b / d delta = -(m x e3) = (-m1, m0, 0), and
+        # d predicted = (-x d a - predicted d b) / b
+        jac[count, 0] = predicted * m1_b
+        jac[count, 1] = x - predicted * inv_b * a
+        jac[count, 2] = -x * m1_b
+        jac[count, 3] = coef[face, 4]
+        jac[count, 4] = coef[face, 5]
+        jac[count, 5] = coef[face, 6]
         residual[count] = z - predicted
         count += 1
     if count == 0:
