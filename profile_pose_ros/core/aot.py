@@ -22,7 +22,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 MODULE = "profile_pose_estimator_aot"
-SOURCES = ("fast.py", "fast_codes.py", "fast_dense.py", "fast_profile.py", "solver.py")
+SOURCES = ("fast.py", "fast_codes.py", "fast_dense.py", "fast_profile.py", "solver.py", "sym3.py")
 
 
 def cache_root() -> Path:

@@ -17,6 +17,7 @@ import numpy as np
 from .corners import CornerOptions, detect_corners
 from .gauge import Gauge
 from .rotation import rotation_angle, so3_log
+from .sym3 import largest_eigenvalue
 from .solver import (PoseSolution, Refinement, SolverError, closed_form, corner_residuals, four_ridge_candidates,
                      refine, search_minima, solution_cost)
 
@@ -180,24 +181,12 @@ def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, e
 
 
 def position_sigma(position_covariance: np.ndarray) -> float:
-    """Largest standard deviation (m) of a 3x3 position covariance (NaN if it is not finite). Closed form
-    (the trigonometric solution of the characteristic cubic): every estimate needs it, and LAPACK through
-    numpy cost ~10 us a call, a tenth of the compiled estimator."""
+    """Largest standard deviation (m) of a 3x3 position covariance (NaN if it is not finite); every
+    estimate needs it (sym3.py: closed form, no LAPACK)."""
     (a, b, c), (_, d, e), (_, _, f) = position_covariance.tolist()
     if not all(map(math.isfinite, (a, b, c, d, e, f))):
         return float("nan")
-    off = b * b + c * c + e * e
-    mean = (a + d + f) / 3.0
-    spread = ((a - mean) ** 2 + (d - mean) ** 2 + (f - mean) ** 2 + 2.0 * off) / 6.0
-    if spread <= 0.0:
-        largest = mean
-    else:
-        p = math.sqrt(spread)
-        a, d, f = (a - mean) / p, (d - mean) / p, (f - mean) / p  # B = (A - mean I) / p; eigenvalues of A:
-        b, c, e = b / p, c / p, e / p  #                              mean + p * 2 cos(angle)
-        half_det = (a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c)) / 2.0
-        largest = mean + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, half_det))) / 3.0)
-    return math.sqrt(max(largest, 0.0))
+    return math.sqrt(max(largest_eigenvalue(a, b, c, d, e, f), 0.0))
 
 
 def needs_search(result: Refinement, cost: float, n_corners: int, weighted: bool, options: EstimatorOptions) -> bool:

@@ -12,6 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .sym3 import largest_eigenvalue
 from .solver import POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS
 from .fast_codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, NOT_FINITE, O_EPS,
                          O_FLOOR, O_MARGIN, O_MAXFACE, O_MAXIT, O_MAXOFF, O_MAXREPROJ, O_MINANGLE, O_MINSEG,
@@ -837,6 +838,9 @@ def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, 
     return status, iterations
 
 
+_largest_eigenvalue = njit(**JIT)(largest_eigenvalue)
+
+
 @njit(**JIT)
 def _position_sigma(cov):
     """estimator.position_sigma of cov[:3, :3], compiled: every accepted pose is checked against it."""
@@ -844,18 +848,7 @@ def _position_sigma(cov):
     for v in (a, b, c, d, e, f):
         if not math.isfinite(v):
             return np.nan
-    off = b * b + c * c + e * e
-    mean = (a + d + f) / 3.0
-    spread = ((a - mean) ** 2 + (d - mean) ** 2 + (f - mean) ** 2 + 2.0 * off) / 6.0
-    if spread <= 0.0:
-        largest = mean
-    else:
-        p = math.sqrt(spread)
-        a, d, f = (a - mean) / p, (d - mean) / p, (f - mean) / p
-        b, c, e = b / p, c / p, e / p
-        half_det = (a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c)) / 2.0
-        largest = mean + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, half_det))) / 3.0)
-    return math.sqrt(max(largest, 0.0))
+    return math.sqrt(max(_largest_eigenvalue(a, b, c, d, e, f), 0.0))
 
 
 @njit(**JIT)
