@@ -84,16 +84,29 @@ def _inliers(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, 
 
 @njit(**JIT)
 def _normal(jac, residual, count, hessian, gradient):
-    hessian[:, :] = 0.0
-    gradient[:] = 0.0
+    """hessian = J^T J and gradient = J^T r over the first `count` rows. The 27 sums live in locals (in
+    registers): accumulated in the output arrays, each was a chain through memory at every point."""
+    h00 = h01 = h02 = h03 = h04 = h05 = h11 = h12 = h13 = h14 = h15 = 0.0
+    h22 = h23 = h24 = h25 = h33 = h34 = h35 = h44 = h45 = h55 = 0.0
+    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
     for i in range(count):
-        for a in range(6):
-            gradient[a] += jac[i, a] * residual[i]
-            for b in range(a, 6):
-                hessian[a, b] += jac[i, a] * jac[i, b]
+        j0, j1, j2, j3, j4, j5 = jac[i, 0], jac[i, 1], jac[i, 2], jac[i, 3], jac[i, 4], jac[i, 5]
+        r = residual[i]
+        h00 += j0 * j0; h01 += j0 * j1; h02 += j0 * j2; h03 += j0 * j3; h04 += j0 * j4; h05 += j0 * j5
+        h11 += j1 * j1; h12 += j1 * j2; h13 += j1 * j3; h14 += j1 * j4; h15 += j1 * j5
+        h22 += j2 * j2; h23 += j2 * j3; h24 += j2 * j4; h25 += j2 * j5
+        h33 += j3 * j3; h34 += j3 * j4; h35 += j3 * j5
+        h44 += j4 * j4; h45 += j4 * j5
+        h55 += j5 * j5
+        g0 += j0 * r; g1 += j1 * r; g2 += j2 * r; g3 += j3 * r; g4 += j4 * r; g5 += j5 * r
+    sums = (h00, h01, h02, h03, h04, h05, h11, h12, h13, h14, h15, h22, h23, h24, h25, h33, h34, h35, h44, h45, h55)
+    k = 0
     for a in range(6):
-        for b in range(a):
-            hessian[a, b] = hessian[b, a]
+        for b in range(a, 6):
+            hessian[a, b] = sums[k]
+            hessian[b, a] = sums[k]
+            k += 1
+    gradient[0], gradient[1], gradient[2], gradient[3], gradient[4], gradient[5] = g0, g1, g2, g3, g4, g5
 
 
 @njit(**JIT)
