@@ -76,7 +76,8 @@ def _inliers(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, 
     kept = 0
     for i in range(count):
         if abs(residual[i]) <= limit:
-            jac[kept, :] = jac[i, :]
+            for a in range(6):  # element by element: a row slice per point cost more than the copy
+                jac[kept, a] = jac[i, a]
             residual[kept] = residual[i]
             kept += 1
     return kept
