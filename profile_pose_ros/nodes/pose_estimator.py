@@ -51,7 +51,7 @@ PARAMETERS = [
           f"Refinement weights: one of {', '.join(WEIGHTINGS)} (uniform = the paper's plain sum of squares)."),
     Param("refine_model", "corners",
           "Refine on the corners (paper eq. 15), or 'dense': also fit every point's depth to its face "
-          "(ML for depth noise, ~1.4x lower position error on the shipped gauge, ~0.5-0.7 ms per profile compiled)."),
+          "(ML for depth noise, ~1.4x lower position error on the shipped gauge, ~0.3-0.5 ms per profile compiled)."),
     Param("basin_search", True, "When a pose is poorly determined (or its cost implausible), also refine from "
           "4-ridge subset and weak-mode starts and keep the lowest minimum (a few ms for such profiles)."),
     Param("basin_search_min_sigma", 2.5e-4, "Search when the refined position's largest standard deviation "

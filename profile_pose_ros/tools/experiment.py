@@ -372,7 +372,7 @@ def main(argv=None) -> int:
     parser.add_argument("--modes", nargs="+", default=["open", "closed"], choices=["open", "closed"])
     parser.add_argument("--refine-model", default="dense", choices=["corners", "dense"],
                         help="pose_estimator's refinement: dense fits every point (~1.6x less noise along the "
-                             "gauge's weak y axis, ~0.5-0.7 ms per profile)")
+                             "gauge's weak y axis, ~0.3-0.5 ms per profile)")
     parser.add_argument("--gauge", default="", help="gauge YAML of the cell (default: config/gauge_paper_n5.yaml; "
                         "config/gauge_designed_n6.yaml is ~4.5x better determined over the same motion)")
     parser.add_argument("--no-bag", action="store_true", help="do not record the run (by default every topic "
