@@ -42,7 +42,6 @@ def _rdp(px, pz, epsilon, keep, stack, scratch):
     keep[:n] = False
     keep[0] = True
     keep[n - 1] = True
-    top = 0
     stack[0] = 0
     stack[1] = n - 1
     top = 1
