@@ -1,5 +1,6 @@
 """The prebuilt estimator (numba.pycc, no LLVM in the process) and numba's JIT are the same code: they must
 give the same numbers, and importing the core for the prebuilt kernel must not load numba."""
+import os
 import subprocess
 import sys
 
@@ -43,3 +44,15 @@ def test_node_side_import_does_not_load_numba(gauge):
             "import profile_pose_ros.core.fast_wrapper as w; print(w.kernel_name, 'numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600).stdout.split()
     assert out[-1] == "False" and "aot" in " ".join(out)
+
+
+def test_prune_removes_builds_unused_for_a_month_and_dead_scratch_only(tmp_path):
+    now = 1_800_000_000.0
+    ages = {"aaaa": 40 * 86400, "bbbb": 5 * 86400, "cccc.x1": 2 * 86400, "dddd.x2": 3600, "keep": 90 * 86400}
+    for name, age in ages.items():
+        (tmp_path / name).mkdir()
+        os.utime(tmp_path / name, (now - age, now - age))
+    (tmp_path / "a_file").write_text("not a build")
+    removed = aot.prune(tmp_path, keep=tmp_path / "keep", now=now)
+    assert sorted(p.name for p in removed) == ["aaaa", "cccc.x1"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "bbbb", "dddd.x2", "keep"]

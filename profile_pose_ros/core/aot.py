@@ -4,6 +4,7 @@ numba's JIT costs a process ~130 MiB (LLVM) even when it only loads cached code.
 (fast.py) is therefore compiled ahead of time with numba.pycc, once per machine, in a subprocess, into a
 cache directory named by a fingerprint of the sources and the toolchain; later starts just import it.
 If the build cannot be done here (no C compiler, a read-only cache), the caller falls back to the JIT.
+Each new build removes the builds no process has loaded for a month (`prune`).
 
     python -m profile_pose_ros.core.aot build    # build now (e.g. in a container image)
 """
@@ -18,6 +19,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from importlib.metadata import version
 from pathlib import Path
 
@@ -59,10 +61,38 @@ def _import(path: Path):
     return module
 
 
+UNUSED_FOR_S = 30 * 86400  # a build no process has loaded for this long is removed after the next build
+ABANDONED_AFTER_S = 86400  # a scratch directory this old is a build that died
+
+
+def prune(root: Path, keep: Path, now: float | None = None) -> list[Path]:
+    """Remove the builds of other fingerprints unused for UNUSED_FOR_S, and scratch directories of builds
+    that died: each upgrade of the package (or of numba) builds anew, and the old ones (~1 MB each) would
+    pile up. A build in use by another installed version is touched at each load, so it stays."""
+    now = time.time() if now is None else now
+    removed = []
+    for entry in root.iterdir() if root.is_dir() else ():
+        if entry == keep or not entry.is_dir():
+            continue
+        limit = ABANDONED_AFTER_S if "." in entry.name else UNUSED_FOR_S
+        try:
+            if now - entry.stat().st_mtime > limit:
+                shutil.rmtree(entry)
+                removed.append(entry)
+        except OSError:
+            pass
+    return removed
+
+
 def load(build: bool = True, timeout: float = 900.0):
     """The prebuilt kernel module, building it first if needed; None if that is not possible here."""
     target = cache_root() / fingerprint()
     path = _module_file(target)
+    if path is not None:
+        try:
+            os.utime(target)  # in use: prune() keeps it
+        except OSError:
+            pass
     if path is None and build:
         try:
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -75,6 +105,7 @@ def load(build: bool = True, timeout: float = 900.0):
                 except OSError:
                     pass
             shutil.rmtree(scratch, ignore_errors=True)
+            prune(target.parent, keep=target)
         except (OSError, subprocess.SubprocessError):
             return None
         path = _module_file(target)
