@@ -7,8 +7,8 @@ Times, over the same >= 1000 profiles of random poses with 5 um depth noise:
   - the paper's camera pipeline: OpenCV findChessboardCorners + cornerSubPix (CD) and solvePnP (PC) on
     synthetic 2590 x 1942 8-bit images of a chessboard with 3 x 4 inner corners at random poses;
 in rounds that interleave the three (so a slow moment of a shared machine falls on all of them, not on
-one block), and prints the Table III layout (mean / std, median, max, min, p99, in ms), data sizes and the ratios,
-and writes the table as JSON. Data transmission (DT) is a property of the cell, not of this code.
+one block), and prints the Table III layout (mean / std, median, max, min, p99, in ms), data sizes and
+the ratios, and writes the table as JSON. Data transmission (DT) is a property of the cell, not of this code.
 """
 from __future__ import annotations
 
@@ -181,8 +181,8 @@ def main(argv=None) -> int:
     compile_s = warm_up(gauge, options)
     profiles = [render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng) for _ in range(scans)]
     # In rounds, side by side: a round of ours lasts ~0.1 s, and on a shared machine one slow tenth of a
-    # second would decide the median. Each round times ours on every profile, the plain reference on a
-    # share of them and the camera on a share of the images, so all three see the same minutes.
+    # second would decide the median. Each round times the camera on a share of the images, the plain
+    # reference on a share of the profiles, then ours on every profile: all three see the same minutes.
     rounds = 1 if args.quick else args.rounds
     ours, plain, camera = {}, {}, {}
     for r in range(rounds):
