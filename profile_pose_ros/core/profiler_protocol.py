@@ -62,7 +62,7 @@ class ProfileFrame:
         table = np.empty((len(self.counts), 3), dtype="<f4")
         table[:, 0] = np.where(valid, _x_grid(self.x_start, self.x_pitch, len(self.counts)), np.float32(np.nan))
         table[:, 1] = np.where(valid, np.float32(0.0), np.float32(np.nan))
-        table[:, 2] = np.where(valid, self.counts * Z_UNIT, np.nan)
+        table[:, 2] = self.z
         return table.tobytes()
 
 
