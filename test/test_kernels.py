@@ -56,3 +56,17 @@ def test_prune_removes_builds_unused_for_a_month_and_dead_scratch_only(tmp_path)
     removed = aot.prune(tmp_path, keep=tmp_path / "keep", now=now)
     assert sorted(p.name for p in removed) == ["aaaa", "cccc.x1"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "bbbb", "dddd.x2", "keep"]
+
+
+def test_tools_compile_the_estimator_before_starting_a_node_only_when_needed(tmp_path, monkeypatch, capsys):
+    from profile_pose_ros.tools.graph import prepare_kernel
+
+    assert aot.load() is not None
+    assert aot.is_current()
+    prepare_kernel()  # built: nothing to say, nothing to do
+    assert capsys.readouterr().out == ""
+    monkeypatch.setenv("PROFILE_POSE_AOT_DIR", str(tmp_path))
+    assert not aot.is_current()
+    monkeypatch.setenv("PROFILE_POSE_KERNEL", "jit")
+    prepare_kernel()  # the JIT was asked for: no build
+    assert capsys.readouterr().out == "" and not any(tmp_path.iterdir())

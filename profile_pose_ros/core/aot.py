@@ -84,8 +84,10 @@ def prune(root: Path, keep: Path, now: float | None = None) -> list[Path]:
     return removed
 
 
-def load(build: bool = True, timeout: float = 900.0):
-    """The prebuilt kernel module, building it first if needed; None if that is not possible here."""
+def ensure_built(timeout: float = 900.0) -> Path | None:
+    """This machine's build of the kernel, built now (a minute or so, in a subprocess) if there is none;
+    None if it cannot be built here. A tool calls it before it starts an estimator process, so that the
+    node does not spend its start-up compiling while the tool waits for poses."""
     target = cache_root() / fingerprint()
     path = _module_file(target)
     if path is not None:
@@ -93,22 +95,32 @@ def load(build: bool = True, timeout: float = 900.0):
             os.utime(target)  # in use: prune() keeps it
         except OSError:
             pass
-    if path is None and build:
-        try:
-            target.parent.mkdir(parents=True, exist_ok=True)
-            scratch = Path(tempfile.mkdtemp(prefix=target.name + ".", dir=target.parent))
-            done = subprocess.run([sys.executable, "-m", "profile_pose_ros.core.aot", "build", str(scratch)],
-                                  capture_output=True, text=True, timeout=timeout)
-            if done.returncode == 0 and _module_file(scratch) is not None:
-                try:
-                    scratch.rename(target)  # atomic; a concurrent builder may have won, which is fine
-                except OSError:
-                    pass
-            shutil.rmtree(scratch, ignore_errors=True)
-            prune(target.parent, keep=target)
-        except (OSError, subprocess.SubprocessError):
-            return None
-        path = _module_file(target)
+        return path
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        scratch = Path(tempfile.mkdtemp(prefix=target.name + ".", dir=target.parent))
+        done = subprocess.run([sys.executable, "-m", "profile_pose_ros.core.aot", "build", str(scratch)],
+                              capture_output=True, text=True, timeout=timeout)
+        if done.returncode == 0 and _module_file(scratch) is not None:
+            try:
+                scratch.rename(target)  # atomic; a concurrent builder may have won, which is fine
+            except OSError:
+                pass
+        shutil.rmtree(scratch, ignore_errors=True)
+        prune(target.parent, keep=target)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return _module_file(target)
+
+
+def is_current() -> bool:
+    """Whether this machine has a build of the current sources."""
+    return _module_file(cache_root() / fingerprint()) is not None
+
+
+def load(timeout: float = 900.0):
+    """The prebuilt kernel module, building it first if needed; None if that is not possible here."""
+    path = ensure_built(timeout)
     if path is None:
         return None
     try:

@@ -64,6 +64,26 @@ def launcher(executable: str) -> list[str]:
     return processes.executable(executable, MODULES[executable])
 
 
+ESTIMATING = ("pose_estimator", "cell_container")  # executables that load the compiled estimator
+
+
+def prepare_kernel() -> None:
+    """Build this machine's compiled estimator before an estimator process starts, saying so: the first
+    time, that takes a minute or more, and a node compiling at start-up would look to the tool like a
+    graph that never sends poses."""
+    import os
+
+    from ..core import aot
+
+    if os.environ.get("PROFILE_POSE_KERNEL", "auto") == "jit" or aot.is_current():
+        return
+    print("[setup] compiling the estimator for this machine (once, about a minute)", flush=True)
+    started = time.monotonic()
+    ready = aot.ensure_built() is not None
+    print(f"[setup] estimator {'compiled' if ready else 'could not be compiled here; the JIT will be used'}"
+          f" in {time.monotonic() - started:.0f} s", flush=True)
+
+
 class Graph:
     """Processes are closed in the reverse of their start order: start the cell first and the bridge
     last, so that the bridge stops (and sends STOP) first."""
@@ -139,6 +159,8 @@ class Graph:
 
     def start(self, executable: str, params: dict | None = None, name: str | None = None) -> subprocess.Popen:
         name = name or executable
+        if executable in ESTIMATING:
+            prepare_kernel()
         command = self._ros_command(executable)
         if self.params_file is None:
             command += ros_params(params or {})
@@ -156,6 +178,7 @@ class Graph:
         """cell_container (the loop's four nodes in one process), each node with its own parameters: a
         file with one block per node name, since `-p` would give every node the same value (`port` is
         the driver's profiler port and the bridge's controller port)."""
+        prepare_kernel()
         command = self._ros_command(name)
         if self.params_file is not None:
             command += ["--params-file", str(self.params_file)]
