@@ -124,6 +124,12 @@ def _loaded():
     return _kernels
 
 
+def will_compile() -> bool:
+    """Whether the kernels' first use in a process will compile them (a minute or more): the prebuilt
+    kernel is wanted and this machine has no build of these sources yet."""
+    return os.environ.get("PROFILE_POSE_KERNEL", "auto") != "jit" and not aot.is_current()
+
+
 def kernel():
     """The compiled estimate() in use."""
     return _loaded().estimate

@@ -29,7 +29,7 @@ from ..core.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
-from .local_topics import LocalTopics
+from .local_topics import LOOP_INPUT_QOS, LocalTopics
 from .parameters import Param, declare_all, updated
 from .realtime import REALTIME_PARAMETERS
 from .run import run_node
@@ -101,7 +101,7 @@ class MotoPlusBridgeNode(Node):
         if local is not None:
             local.take(self.resolve_topic_name("correction"), self._on_correction)
         else:
-            corrections = self.create_subscription(TwistStamped, "correction", self._on_correction, 10,
+            corrections = self.create_subscription(TwistStamped, "correction", self._on_correction, LOOP_INPUT_QOS,
                                                    callback_group=direct, raw=True)  # read by core/pose_cdr.py
             self.fast_input.add(corrections, self._on_correction)
         self.create_service(Trigger, "~/start", self._on_start)

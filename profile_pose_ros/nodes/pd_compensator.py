@@ -24,7 +24,7 @@ from ..core.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, enc
 from ..core.rotation import rotation_from_quaternion_xyzw
 from .diagnostics import OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
-from .local_topics import LocalTopics, LoopOutput
+from .local_topics import LOOP_INPUT_QOS, LocalTopics, LoopOutput
 from .messages import rotation_translation
 from .parameters import Param, declare_all, updated
 from .realtime import REALTIME_PARAMETERS
@@ -100,7 +100,7 @@ class PdCompensatorNode(Node):
             local.take(self.resolve_topic_name("pose_with_covariance"), self._on_pose)
         else:
             pose_sub = self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose,
-                                                10, callback_group=ServedDirectly(), raw=True)
+                                                LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
             self.fast_input.add(pose_sub, self._on_pose)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
         self.latency = LatencyWindow("trigger_to_correction_ms")  # the pose's stamp -> its correction published

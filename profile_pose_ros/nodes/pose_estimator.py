@@ -137,6 +137,9 @@ class PoseEstimatorNode(Node):
         self.gauge_file = self.values["gauge_file"] or str(config_path(DEFAULT_GAUGE))
         self.gauge = Gauge.from_yaml(self.gauge_file)  # GaugeError: main() reports it and exits
         self.options = options_from(self.values)
+        if fast_wrapper.will_compile():
+            self.get_logger().info("compiling the estimator for this machine before the first profile "
+                                   "(once per installed version, about a minute)")
         compile_s = warm_up(self.gauge, self.options)  # compile (or load) before the first profile
         self.add_on_set_parameters_callback(self._on_set_parameters)
 

@@ -65,21 +65,22 @@ def launcher(executable: str) -> list[str]:
 
 
 ESTIMATING = ("pose_estimator", "cell_container")  # executables that load the compiled estimator
+_build_failed = False  # this process tried to build the estimator and could not: do not try at every start
 
 
 def prepare_kernel() -> None:
     """Build this machine's compiled estimator before an estimator process starts, saying so: the first
     time, that takes a minute or more, and a node compiling at start-up would look to the tool like a
     graph that never sends poses."""
-    import os
+    global _build_failed
+    from ..core import aot, fast_wrapper
 
-    from ..core import aot
-
-    if os.environ.get("PROFILE_POSE_KERNEL", "auto") == "jit" or aot.is_current():
+    if _build_failed or not fast_wrapper.will_compile():
         return
     print("[setup] compiling the estimator for this machine (once, about a minute)", flush=True)
     started = time.monotonic()
     ready = aot.ensure_built() is not None
+    _build_failed = not ready
     print(f"[setup] estimator {'compiled' if ready else 'could not be compiled here; the JIT will be used'}"
           f" in {time.monotonic() - started:.0f} s", flush=True)
 
