@@ -54,9 +54,10 @@ class LocalTopics:
 
 
 class LoopOutput:
-    """A node's publisher of a loop topic. publish() sends over DDS (composed: only if someone subscribes
-    there); hand_over() then gives the same bytes to every local taker. Two steps, so that a node times
-    its stage at the publish, as it does standalone, and not after the downstream nodes' work."""
+    """A node's publisher of a loop topic. publish() sends over DDS if anyone subscribes there (publishing
+    to nobody still cost ~20 us a message at 1 kHz); hand_over() then gives the same bytes to every local
+    taker. Two steps, so that a node times its stage at the publish, as it does standalone, and not after
+    the downstream nodes' work."""
 
     def __init__(self, publisher, local: LocalTopics | None, logger=None) -> None:
         self.publisher = publisher
@@ -64,7 +65,7 @@ class LoopOutput:
         self.logger = logger
 
     def publish(self, serialized: bytes) -> None:
-        if self.local is None or self.publisher.get_subscription_count():  # local takers are not DDS subscribers
+        if self.publisher.get_subscription_count():  # DDS subscribers only: local takers get hand_over()
             self.publisher.publish(serialized)
 
     def hand_over(self, serialized: bytes) -> None:
@@ -77,9 +78,3 @@ class LoopOutput:
                 if self.logger is not None:
                     self.logger.error(f"composed taker of {self.publisher.topic_name} failed: {exc!r}",
                                       throttle_duration_sec=1.0)
-
-    def get_subscription_count(self) -> int:
-        """Subscribers over DDS plus local takers."""
-        return self.publisher.get_subscription_count() + (
-            len(self.local.takers(self.publisher.topic_name)) if self.local is not None else 0)
-
