@@ -29,6 +29,12 @@ def test_peak_frequency_magnitude_sees_the_ringing_not_the_step() -> None:
     assert ringing > 20 * smooth
 
 
+def test_a_slow_smooth_approach_leaves_almost_nothing_in_the_band() -> None:
+    t = np.arange(0, 3.0, 0.012)
+    m = step_metrics(t, 1e-3 * (1 - np.exp(-t / 1.0)), 1e-3)  # first order, tau 1 s: no oscillation at all
+    assert m["Mf_um"] < 0.05  # holding the edge value before the window left 0.076 um of its slope
+
+
 def test_a_response_that_never_rises_has_metrics_not_an_error() -> None:
     t = np.arange(0, 1.5, 0.012)
     m = step_metrics(t, 0.5e-3 * (1 - np.exp(-t)), 1e-3)  # reaches 39 % of the step in the record

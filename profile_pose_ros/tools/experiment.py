@@ -72,7 +72,10 @@ def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.nd
     grid = np.arange(start, min(start + 1.0, t[-1]), dt)
     residual = np.interp(grid, t, y) - size
     width = max(1, int(round(0.1 / dt)))
-    padded = np.pad(residual, (width // 2, width - 1 - width // 2), mode="edge")
+    # odd reflection continues the local trend past the window's ends, so a straight stretch is removed
+    # whole; "edge" padding (the value held) biased the average over the first 50 ms, where the response
+    # still moves: it took part of an open-loop ring out with the trend and left a smooth tail's slope in
+    padded = np.pad(residual, (width // 2, width - 1 - width // 2), mode="reflect", reflect_type="odd")
     residual = residual - np.convolve(padded, np.ones(width) / width, mode="valid")
     return np.fft.rfftfreq(len(residual), dt), 2.0 * np.abs(np.fft.rfft(residual)) / max(len(residual), 1)
 
