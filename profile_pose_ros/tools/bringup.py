@@ -78,10 +78,14 @@ class Bringup:
         g = self.graph
         nodes = [n for n in NODES + (() if self.hardware else ("sim_cell",)) if not g.reported(n)]
         topics = [f"topic {t}" for t, n in self.seen.items() if n == 0]
+        # a node's first report may predate its first message: wait for one that counts them (the status
+        # line printed at "ready" reads these rates)
+        rates = [f"{n} rate report" for n in ("profiler_driver", "pose_estimator")
+                 if g.reported(n) and not float(g.diagnostic(n, "rate_hz", "0") or 0) > 0]
         bridge = g.diagnostic("motoplus_bridge", "state", "")
         connected = bridge in ("connected", "arming", "armed")
         link = [] if connected else [f"robot controller link ({bridge or 'no report'})"]
-        return nodes + topics + link
+        return nodes + topics + rates + link
 
     def wait_ready(self, timeout: float) -> float:
         start = time.monotonic()
