@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from profile_pose_ros.tools.experiment import METRICS, damping_from_overshoot, step_metrics
+from profile_pose_ros.tools.experiment import METRICS, REACHED, damping_from_overshoot, step_metrics
 
 
 def second_order_step(zeta: float, size: float = 1e-3, rate: float = 83.333) -> tuple[np.ndarray, np.ndarray]:
@@ -39,6 +39,8 @@ def test_a_response_that_never_rises_has_metrics_not_an_error() -> None:
     t = np.arange(0, 1.5, 0.012)
     m = step_metrics(t, 0.5e-3 * (1 - np.exp(-t)), 1e-3)  # reaches 39 % of the step in the record
     assert m["Mp"] == 0.0 and np.isnan(m["rise_time_s"])
+    assert m["end_fraction"] == pytest.approx(0.5 * (1 - np.exp(-1.4)), abs=0.03)  # the last 0.2 s
+    assert m["end_fraction"] < REACHED
     assert tuple(m) == METRICS  # a step left out for lost poses reports the same keys
 
 
