@@ -99,3 +99,50 @@ def test_mutated_messages_raise_only_profile_format_error(data):
     except ProfileFormatError:
         return
     assert profile.points.ndim == 2 and profile.points.shape[1] == 2
+
+
+def _outcome(data: bytes):
+    try:
+        profile = decode_profile_cdr(data)
+    except ProfileFormatError as exc:
+        return "error", str(exc)
+    return profile.stamp_ns, profile.frame_id, profile.points.tobytes()
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_a_layout_remembered_from_the_last_profile_reads_as_a_fresh_parse(data):
+    """decode_profile_cdr skips re-reading a layout it has just read: whatever follows a good profile
+    (another layout, a changed field, padding, truncation, trailing bytes) must read exactly as if nothing
+    had been remembered."""
+    import profile_pose_ros.core.profile_cdr as module
+
+    good = serialize_message(cloud(data.draw(st.sampled_from(["profiler", "p", ""])), data.draw(st.booleans())))
+    message = bytearray(good)
+    for _ in range(data.draw(st.integers(0, 3))):
+        at = data.draw(st.integers(0, len(message) - 1))
+        message[at] = data.draw(st.integers(0, 255))
+    cut = data.draw(st.sampled_from([None, len(message) - 1, len(message) - 4, len(message) // 2, 40]))
+    message = bytes(message[:cut]) + data.draw(st.sampled_from([b"", b"\x00", b"\x00" * 4]))
+    module._last_layout = None
+    fresh = _outcome(message)
+    decode_profile_cdr(good)  # remembered
+    assert _outcome(message) == fresh
+
+
+def test_padding_does_not_hide_a_known_layout(monkeypatch):
+    """rclpy's padding bytes differ from message to message: a layout is recognised without them."""
+    import profile_pose_ros.core.profile_cdr as module
+
+    first, second = serialize_message(cloud()), bytearray(serialize_message(cloud()))
+    decode_profile_cdr(first)
+    reads = []
+    monkeypatch.setattr(module, "_read_layout", lambda d, read=module._read_layout: reads.append(1) or read(d))
+    pieces = module._last_layout.pieces
+    covered = {at for start, piece in pieces for at in range(start, start + len(piece))}
+    padding = [at for at in range(12, module._last_layout.table_start) if at not in covered]
+    assert padding  # frame_id, each field name, each field's datatype and is_bigendian are padded
+    for at in padding:
+        second[at] ^= 0xA5
+    assert decode_profile_cdr(bytes(second)).points.tobytes() == decode_profile_cdr(first).points.tobytes()
+    assert reads == []
