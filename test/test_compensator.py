@@ -163,3 +163,38 @@ def test_kalman_update_equals_the_matrix_form(seed: int) -> None:
         np.testing.assert_allclose(kf.velocity, x[:, 1], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(np.stack([kf.p00, kf.p01, kf.p11], axis=1), p[:, [0, 0, 1], [0, 1, 1]],
                                    rtol=1e-9, atol=1e-20)
+
+
+@pytest.mark.parametrize("damage", ["zero quaternion", "nan position", "inf covariance", "truncated"])
+def test_a_corrupt_pose_moves_nothing_and_the_node_goes_on(ros, damage) -> None:
+    from rclpy.serialization import serialize_message
+
+    node = compensator(ros, max_pose_age=1.0)
+    node.reference = np.zeros(6)
+    stamp = Time(nanoseconds=time.time_ns()).to_msg()
+    good = pose_with_covariance(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge"),
+                                np.diag([1e-10] * 3 + [1e-8] * 3))
+    bad = pose_with_covariance(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge"),
+                               np.diag([1e-10] * 3 + [1e-8] * 3))
+    if damage == "zero quaternion":
+        o = bad.pose.pose.orientation
+        o.x = o.y = o.z = o.w = 0.0
+    elif damage == "nan position":
+        bad.pose.pose.position.y = float("nan")
+    elif damage == "inf covariance":
+        bad.pose.covariance[0] = float("inf")
+    data = serialize_message(bad)
+    node._on_pose(data[:40] if damage == "truncated" else data)  # the subscription's callback, as DDS calls it
+    assert node.poses == 0 and node.corrections == 0  # not taken, nothing sent
+    node._on_pose(serialize_message(good))
+    assert node.poses == 1 and node.corrections == 1  # and the next good one is
+
+
+def test_a_corrupt_reference_is_ignored(ros) -> None:
+    node = compensator(ros)
+    stamp = Time(nanoseconds=time.time_ns()).to_msg()
+    node._on_reference(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge"))
+    kept = node.reference.copy()
+    bad = pose_stamped(LOOKING_DOWN, np.array([0.0, float("nan"), 0.45]), stamp, "gauge")
+    node._on_reference(bad)
+    np.testing.assert_array_equal(node.reference, kept)

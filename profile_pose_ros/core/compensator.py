@@ -83,7 +83,7 @@ def covariance_in_base(covariance: np.ndarray, mounting: Mounting) -> np.ndarray
 
 class AxisKalman:
     """Six independent constant-velocity filters: state [position, velocity] per axis, and each axis's
-    2 x 2 covariance as its three distinct entries. On Python floats, axis by axis: 9 us an update here,
+    2 x 2 covariance as its three distinct entries. On Python floats, axis by axis: 6 us an update here,
     where the same algebra as numpy operations on six axes at once took 37 us (small-array overhead)."""
 
     def __init__(self, acceleration_psd: np.ndarray) -> None:

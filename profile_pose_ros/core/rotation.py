@@ -73,6 +73,8 @@ def quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
 def rotation_from_quaternion_xyzw(q: np.ndarray) -> np.ndarray:
     x, y, z, w = np.asarray(q, dtype=float).tolist()  # Python floats: see quaternion_xyzw
     norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if norm == 0.0:  # no rotation at all (a corrupt message): NaN, which callers reject, not an exception
+        return np.full((3, 3), np.nan)
     x, y, z, w = x / norm, y / norm, z / norm, w / norm
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

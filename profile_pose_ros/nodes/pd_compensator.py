@@ -124,13 +124,20 @@ class PdCompensatorNode(Node):
         return self._pose_vector(*rotation_translation(pose))
 
     def _pose_vector(self, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-        if self.anchor is None:
-            self.anchor = self.mounting.rotation @ rotation
-        return pose_vector_in_base(rotation, translation, self.mounting, self.anchor)
+        anchor = self.anchor
+        if anchor is None:
+            anchor = self.mounting.rotation @ rotation
+            if np.isfinite(anchor).all():  # a corrupt first pose (NaN) must not spoil every later one
+                self.anchor = anchor
+        return pose_vector_in_base(rotation, translation, self.mounting, anchor)
 
     def _on_reference(self, msg: PoseStamped) -> None:
         with self._lock:
-            self.reference = self._vector(msg.pose)
+            reference = self._vector(msg.pose)
+            if not np.isfinite(reference).all():
+                self.get_logger().error("reference_pose with NaN or inf ignored", throttle_duration_sec=1.0)
+                return
+            self.reference = reference
 
     def _on_pose(self, serialized: bytes) -> None:
         with self._lock:
@@ -145,14 +152,18 @@ class PdCompensatorNode(Node):
         stamp = pose_stamp_ns * 1e-9
         if time.time() - stamp > self.values["max_pose_age"]:
             return  # stale on arrival: the watchdog sends zeros
+        # a NaN or an inf anywhere survives a sum; checked before any arithmetic, which would warn
+        if not math.isfinite(sum(pose) + (covariance.sum() if self.values["use_covariance"] else 0.0)):
+            self.get_logger().error("pose with NaN or inf ignored", throttle_duration_sec=1.0)
+            return
         rotation = rotation_from_quaternion_xyzw(np.array(pose[3:]))
         z = self._pose_vector(rotation, np.array(pose[:3]))
         if self.values["use_covariance"]:
             variance = covariance_in_base(covariance, self.mounting)
         else:
             variance = np.full(6, self.values["measurement_std"] ** 2)
-        if not math.isfinite(z.sum() + variance.sum()):  # a NaN or an inf anywhere (they survive a sum)
-            self.get_logger().error("pose with NaN ignored", throttle_duration_sec=1.0)
+        if not math.isfinite(z.sum()):  # a zero quaternion (no rotation at all) gives NaN
+            self.get_logger().error("pose with an invalid orientation ignored", throttle_duration_sec=1.0)
             return
         self.filter.update(stamp, z, variance)
         self.last_pose_stamp = stamp
