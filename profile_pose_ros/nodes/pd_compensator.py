@@ -162,8 +162,9 @@ class PdCompensatorNode(Node):
             variance = covariance_in_base(covariance, self.mounting)
         else:
             variance = np.full(6, self.values["measurement_std"] ** 2)
-        if not math.isfinite(z.sum()):  # a zero quaternion (no rotation at all) gives NaN
-            self.get_logger().error("pose with an invalid orientation ignored", throttle_duration_sec=1.0)
+        if not math.isfinite(z.sum() + variance.sum()):  # a zero quaternion (no rotation) gives NaN, a vast
+            self.get_logger().error("pose with an invalid orientation or covariance ignored",  # covariance inf
+                                    throttle_duration_sec=1.0)
             return
         self.filter.update(stamp, z, variance)
         self.last_pose_stamp = stamp
