@@ -3,11 +3,12 @@ and encoded without building the ROS message.
 
 rclpy's conversion of a 3200-point cloud into Python objects cost 30-60 us, a fifth of the estimator
 node's time per profile at 1 kHz; this reads the few metadata fields with struct (and only when they
-differ from the previous profile's) and hands the point table, in place, to decode_profile. A bag's recorded bytes take the very same path in replay.
-Anything malformed raises ProfileFormatError, like every other profile check. The driver publishes the
-bytes encode_profile_cdr writes: rclpy's serialization but for the alignment padding, which rclpy leaves
-as whatever was in memory and this writes as zeros (a test compares them), without building the message
-and converting it back (a third of the driver's time per profile).
+differ from the previous profile's) and hands the point table, in place, to decode_profile. A bag's
+recorded bytes take the very same path in replay. Anything malformed raises ProfileFormatError, like
+every other profile check. The driver publishes the bytes encode_profile_cdr writes: rclpy's
+serialization but for the alignment padding, which rclpy leaves as whatever was in memory and this
+writes as zeros (a test compares them), without building the message and converting it back (a third
+of the driver's time per profile).
 """
 from __future__ import annotations
 
