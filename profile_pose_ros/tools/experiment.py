@@ -32,6 +32,7 @@ RECORD_S, SETTLE_S, BEFORE_S = 1.5, 1.5, 0.2
 METRICS = ("Mp", "zeta", "Mf_um", "rise_time_s", "settling_time_s", "end_fraction")  # what step_metrics returns
 REACHED = 0.95  # a step counts as reached when the record's last 0.2 s average this share of it or more
 END_S = 0.2
+STARVED_SHARE = 0.1  # answers sent as zero beyond this share of all: the loop was short of CPU, say so
 
 
 def damping_from_overshoot(mp_percent: float) -> float:
@@ -365,10 +366,19 @@ def loop_health(exp: Experiment) -> str:
     """How often the loop had nothing fresh to send: over the whole run (open-loop periods send nothing)."""
     bridge = {key: exp.value("motoplus_bridge", key, "?")
               for key in ("corrections", "zero_corrections", "late_answers", "lost_increments")}
-    return (f"loop: {bridge['corrections']} corrections sent, {bridge['zero_corrections']} of them zero (no fresh "
+    text = (f"loop: {bridge['corrections']} corrections sent, {bridge['zero_corrections']} of them zero (no fresh "
             f"correction; {bridge['late_answers']} answers too late to use); the controller replaced "
             f"{exp.value('sim_cell', 'robot_corrections_replaced', '?')} not yet applied by a newer one (the bridge "
             f"counted {bridge['lost_increments']} moving ones lost from the controller's STATEs)")
+    try:
+        starved = int(bridge["zero_corrections"]) > STARVED_SHARE * int(bridge["corrections"])
+    except ValueError:  # a node that never reported
+        starved = False
+    if starved:
+        text += (f"\nmore than {100 * STARVED_SHARE:.0f} % of the answers carried no fresh correction: the graph is "
+                 "short of CPU at this rate, and the closed-loop figures show that, not the controller (on a small "
+                 "PC at 250 Hz, --refine-model corners costs less per profile; docs/performance.md)")
+    return text
 
 
 def main(argv=None) -> int:
