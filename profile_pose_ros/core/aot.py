@@ -10,6 +10,7 @@ Each new build removes the builds no process has loaded for a month (`prune`).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib.machinery
 import importlib.util
@@ -35,8 +36,10 @@ def cache_root() -> Path:
     return Path(base) / "profile_pose_ros" / "aot"
 
 
+@functools.cache
 def fingerprint() -> str:
-    """Changes whenever the compiled code or the toolchain that compiles it changes."""
+    """Changes whenever the compiled code or the toolchain that compiles it changes. Computed once a
+    process: the sources it hashes are the ones this process imported."""
     digest = hashlib.sha256()
     here = Path(__file__).resolve().parent
     for name in SOURCES:
@@ -44,6 +47,11 @@ def fingerprint() -> str:
     for item in (version("numba"), version("numpy"), sys.version, platform.machine()):
         digest.update(item.encode())
     return digest.hexdigest()[:16]
+
+
+def build_dir() -> Path:
+    """Where this machine's build of the current sources is (or would be)."""
+    return cache_root() / fingerprint()
 
 
 def _module_file(directory: Path) -> Path | None:
@@ -88,7 +96,7 @@ def ensure_built(timeout: float = 900.0) -> Path | None:
     """This machine's build of the kernel, built now (a minute or so, in a subprocess) if there is none;
     None if it cannot be built here. A tool calls it before it starts an estimator process, so that the
     node does not spend its start-up compiling while the tool waits for poses."""
-    target = cache_root() / fingerprint()
+    target = build_dir()
     path = _module_file(target)
     if path is not None:
         try:
@@ -115,7 +123,7 @@ def ensure_built(timeout: float = 900.0) -> Path | None:
 
 def is_current() -> bool:
     """Whether this machine has a build of the current sources."""
-    return _module_file(cache_root() / fingerprint()) is not None
+    return _module_file(build_dir()) is not None
 
 
 def load(timeout: float = 900.0):
@@ -201,7 +209,7 @@ def main(argv=None) -> int:
         build_into(Path(args[1]))
         return 0
     module = load()
-    print(f"{MODULE}: {'ready' if module else 'could not be built here'} in {cache_root() / fingerprint()}")
+    print(f"{MODULE}: {'ready' if module else 'could not be built here'} in {build_dir()}")
     return 0 if module else 1
 
 
