@@ -92,8 +92,9 @@ def compensator(ros, **params) -> PdCompensatorNode:
                                      parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]))
 
 
-def test_stale_pose_gives_zero_correction_within_three_periods(ros) -> None:
-    node = compensator(ros, max_pose_age=0.036)
+@pytest.mark.parametrize("law", ["pd", "modal"])
+def test_stale_pose_gives_zero_correction_within_three_periods(ros, law: str) -> None:
+    node = compensator(ros, max_pose_age=0.036, control_law=law)
     talker = ros.node("talker")
     poses = talker.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
     reference = talker.create_publisher(PoseStamped, "reference_pose", 10)

@@ -1,6 +1,7 @@
 """pd_compensator: `pose_with_covariance` and `reference_pose` (F in G) -> `correction` (TwistStamped, robot
 base frame): a PD law on the Kalman-filtered pose error, through an input shaper that keeps the arm's 10 Hz
-resonance out of the commands (core/compensator.py).
+resonance out of the commands (core/compensator.py); or, with `control_law: modal`, a feedback of the arm
+mode's state that damps the resonance (core/modal_control.py).
 
 A stale pose (older than max_pose_age by its stamp), a missing one (the estimator rejected the profile)
 or no reference gives a zero correction and a diagnostic. Gains change at run time, validated.
@@ -21,6 +22,7 @@ from rclpy.node import Node
 from ..core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base, pd_velocity,
                                 pose_vector_in_base, zvd_impulses)
 from ..core.latency_window import LatencyWindow
+from ..core.modal_control import ModalController, ModalDesign
 from ..core.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
 from ..core.rotation import rotation_from_quaternion_xyzw
 from .diagnostics import OK, WARN, diagnostic_array
@@ -49,6 +51,28 @@ PARAMETERS = [
           "--modes open prints the ringing).", 0.0, 100.0, read_only=True),
     Param("shaper_damping", 0.05, "Damping ratio of that resonance, for the shaper (the ZVD shaper tolerates "
           "+-20 % error on the frequency).", 0.0, 0.9, read_only=True),
+    Param("control_law", "pd", "pd: the PD law behind the input shaper (sends nothing at the resonance, adds no "
+          "damping); modal: a Kalman filter on a model of the arm's mode and the loop's delays with an LQR "
+          "feedback that damps the mode (docs/robot_side.md). modal needs one pose per control period.",
+          read_only=True),
+    Param("modal_frequency", [10.0] * 6, "modal: the arm mode's natural frequency per axis (Hz), as the open-loop "
+          "step shows it (profile_pose_experiment --modes open).", read_only=True),
+    Param("modal_damping", [0.68, 0.13, 0.53, 0.7, 0.7, 0.7], "modal: the mode's damping ratio per axis (the "
+          "open-loop step's; the paper's Table IV for x y z).", read_only=True),
+    Param("modal_effort", [10.0, 30.0, 10.0, 10.0, 10.0, 10.0], "modal: the LQR's weight on each increment "
+          "against the mode's energy, per axis: larger is slower and passes less of the estimate's noise to the "
+          "arm (y: the gauge's noisy axis).", read_only=True),
+    Param("modal_acceleration_psd", [1e-3] * 6, "modal: the filter's acceleration noise per axis "
+          "((m/s^2)^2/Hz; rad the same): what the model does not predict.", read_only=True),
+    Param("modal_offset_walk", [1e-5] * 6, "modal: how fast the filter lets the arm's offset from the commands "
+          "it was sent drift (m, rad per period): lost increments, rounding, model error.", read_only=True),
+    Param("control_period", 0.012, "modal: the controller's period (s): 0.012 at 83.3 Hz, 0.004 at 250 Hz.",
+          0.001, 0.1, read_only=True),
+    Param("loop_delay", 0.0226, "modal: from a pose's stamp to the arm moving on the increment it caused (s): "
+          "one control period (the answer is applied at the next) plus the arm's command-to-motion delay.",
+          0.001, 0.5, read_only=True),
+    Param("reference_time_constant", 0.25, "modal: a new reference is approached through a first-order filter "
+          "of this time constant (s), starting from where the arm is.", 0.01, 10.0, read_only=True),
     Param("use_covariance", True, "Weight each pose by its published covariance (else by measurement_std)."),
     Param("measurement_std", 5e-5, "Pose noise assumed when use_covariance is false (m; rad the same number).",
           1e-7, 1e-2),
@@ -62,6 +86,17 @@ PARAMETERS = [
 ]
 
 _GAINS = ("kp", "kd", "max_speed")
+
+
+def modal_controller_from(values: dict) -> ModalController | None:
+    if values["control_law"] == "pd":
+        return None
+    if values["control_law"] != "modal":
+        raise ValueError(f"control_law must be pd or modal, got {values['control_law']!r}")
+    return ModalController(ModalDesign(
+        tuple(values["modal_frequency"]), tuple(values["modal_damping"]), tuple(values["modal_effort"]),
+        tuple(values["modal_acceleration_psd"]), tuple(values["modal_offset_walk"]), values["control_period"],
+        values["loop_delay"], values["reference_time_constant"]))
 
 
 def gains_from(values: dict) -> Gains:
@@ -83,6 +118,7 @@ class PdCompensatorNode(Node):
         self.filter = AxisKalman(np.array(v["acceleration_psd"]))
         self.shaper = (InputShaper(zvd_impulses(v["shaper_frequency"], v["shaper_damping"]))
                        if v["shaper_frequency"] > 0 else None)
+        self.modal = modal_controller_from(v)
         self.anchor: np.ndarray | None = None  # base-frame rotation all rotation vectors are taken from
         self.reference: np.ndarray | None = None  # 6-vector in base coordinates
         self.last_pose_stamp = 0.0
@@ -166,15 +202,22 @@ class PdCompensatorNode(Node):
             self.get_logger().error("pose with an invalid orientation or covariance ignored",  # covariance inf
                                     throttle_duration_sec=1.0)
             return
-        self.filter.update(stamp, z, variance)
         self.last_pose_stamp = stamp
         self.poses += 1
-        if self.reference is None:
-            return  # no target yet: the watchdog keeps the output at zero
-        self.last_error = self.reference - self.filter.position
-        velocity = pd_velocity(self.last_error, self.filter.velocity, self.gains)
-        if self.shaper is not None:
-            velocity = self.shaper(stamp, velocity)  # a mix of limited velocities: still within max_speed
+        if self.modal is not None:
+            velocity = self.modal.update(stamp, z, variance, self.reference)
+            if self.reference is None:
+                return  # no target yet: the watchdog keeps the output at zero
+            self.last_error = self.reference - self.modal.position
+            velocity = self.modal.limit(self.gains.arrays[2])
+        else:
+            self.filter.update(stamp, z, variance)
+            if self.reference is None:
+                return
+            self.last_error = self.reference - self.filter.position
+            velocity = pd_velocity(self.last_error, self.filter.velocity, self.gains)
+            if self.shaper is not None:
+                velocity = self.shaper(stamp, velocity)  # a mix of limited velocities: still within max_speed
         self._publish(velocity, pose_stamp_ns)
         self.latency.add(time.time() - stamp)
         self.corrections += 1
@@ -196,6 +239,8 @@ class PdCompensatorNode(Node):
         if self.reference is not None and now <= stale_at:
             return stale_at + 1e-4
         self.filter.reset()  # the next fresh pose starts the filter again, not from old motion
+        if self.modal is not None:
+            self.modal.reset()
         if self.shaper is not None:
             self.shaper.reset()  # nor does old shaped motion come back after a stale spell
         self._publish(np.zeros(6), self.get_clock().now().nanoseconds)
@@ -212,7 +257,10 @@ class PdCompensatorNode(Node):
             level, message = OK, "correcting"
         values = {"poses": self.poses, "corrections": self.corrections, "zero_corrections": self.stale_zeros,
                   "pose_age_ms": age * 1e3, "error_um": [round(float(e) * 1e6, 1) for e in self.last_error[:3]],
-                  "kp": list(self.gains.kp), "kd": list(self.gains.kd), **self.latency.report()}
+                  "control_law": self.values["control_law"], "kp": list(self.gains.kp), "kd": list(self.gains.kd),
+                  **self.latency.report()}
+        if self.modal is not None:
+            values["poses_within_a_period"] = self.modal.skipped  # not used: modal wants one pose a period
         self.diagnostics_pub.publish(diagnostic_array(self, "compensator", "pd_compensator",
                                                       level, message, values))
 

@@ -22,6 +22,8 @@ FRAMES = {"gauge_frame": "gauge", "profiler_frame": "profiler", "base_frame": "b
 SIM_CELL = {
     "profiler_driver": {"serial_url": "socket://127.0.0.1:24693"},
     "pose_estimator": {"refine_model": "dense", "max_profile_age": 0.05},
+    # the simulated arm's mode is known (its open-loop step gives it): the law that damps it
+    "pd_compensator": {"control_law": "modal"},
 }
 HARDWARE = {
     "profiler_driver": {"backend": "ljx", "host": "192.168.0.1", "library_path": "/opt/keyence/lib/libljxacom.so",

@@ -1,0 +1,218 @@
+"""A model-based alternative to the PD law: per axis, a Kalman filter on a model of the arm's 10 Hz mode and
+of the loop's delays, and a linear-quadratic (LQR) feedback of that state, so the loop damps the mode
+instead of only not exciting it.
+
+Why: the PD law behind a ZVD shaper sends nothing at 10 Hz, but it adds no damping either. On an axis
+whose mode barely decays (sim_cell's y: zeta 0.01 at small amplitude, the paper's open-loop 0.13), any
+bump the loop does not cause (an increment the controller lost, a late answer, a knock on the arm) rings
+for seconds. Damping it takes the mode's state, and the mode is 10 Hz behind 23 ms of delay (an answer
+is applied at the controller's next period, then the arm's command-to-motion delay): a PD on the measured
+velocity acts a quarter of a cycle late. The filter here predicts the mode through those delays; the LQR
+gain (scipy's discrete Riccati solver) trades the mode's energy against the size of each increment.
+
+The model, per axis, one control period T apart (pose k measured at t_k, its increment applied at the
+controller's next period; the arm follows the command after `loop_delay` - T more):
+
+    p'' = w^2 (c(t - loop_delay) + d - p) - 2 zeta w p'
+
+c is the commanded offset (the sum of the increments sent), d an unknown offset the filter estimates:
+increments the controller lost or never got, rounding to its 1 um unit, a model that is off. Without d a
+lost increment would be a permanent error (the filter would believe the arm was sent there).
+State: [p, v, c_(k-a-1) .. c_(k-1), d] with a = floor(loop_delay / T); the input is the next increment.
+The reference passes through a first-order filter (`reference_time_constant`) so that a step is approached
+smoothly; it starts from where the arm is estimated to be, so a new reference is glided to, never jumped.
+Poses must come once per control period (the cell triggers the profiler each period): a pose less than
+half a period after the previous one is not used, and a gap of more than MAX_GAP periods restarts.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import expm, solve_discrete_are
+
+MAX_GAP = 4  # periods without a pose after which the filter starts again
+
+
+@dataclass(frozen=True)
+class ModalDesign:
+    """Per axis (x y z rx ry rz): the mode's natural frequency (Hz) and damping ratio, the LQR's effort
+    weight (larger: smaller increments, less of the estimate's noise in the arm, slower), the filter's
+    acceleration noise ((m/s^2)^2/Hz) and the offset's random walk (m per period); and for all axes the
+    control period, the delay from a pose's stamp to the arm moving on its increment, and the reference
+    filter's time constant (s)."""
+
+    frequency_hz: tuple[float, ...]
+    damping: tuple[float, ...]
+    effort: tuple[float, ...]
+    acceleration_psd: tuple[float, ...]
+    offset_walk: tuple[float, ...]
+    period_s: float = 0.012
+    loop_delay_s: float = 0.012 + 0.0106
+    reference_time_constant_s: float = 0.25
+
+    def check(self) -> None:
+        per_axis = (self.frequency_hz, self.damping, self.effort, self.acceleration_psd, self.offset_walk)
+        if any(len(v) != 6 for v in per_axis):
+            raise ValueError("modal control: six values per axis for frequency, damping, effort, "
+                             "acceleration_psd and offset_walk")
+        if not all(0 < f <= 100 for f in self.frequency_hz) or not all(0 <= z < 1 for z in self.damping):
+            raise ValueError("modal control: mode frequency in (0, 100] Hz and damping in [0, 1)")
+        if min(self.effort) <= 0 or min(self.acceleration_psd) <= 0 or min(self.offset_walk) <= 0:
+            raise ValueError("modal control: effort, acceleration_psd and offset_walk must be > 0")
+        if not (0 < self.period_s <= 0.1 and self.period_s <= self.loop_delay_s <= 0.5):
+            raise ValueError(f"modal control: period in (0, 0.1] s and loop_delay in [period, 0.5] s (an "
+                             f"increment is applied at the next period at the earliest), got {self.period_s}, "
+                             f"{self.loop_delay_s}")
+        if not 0 < self.reference_time_constant_s <= 10:
+            raise ValueError("modal control: reference_time_constant in (0, 10] s")
+
+
+def _held_input(frequency_hz: float, damping: float, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+    """(e^(A s), integral of e^(A t) B over [0, s]) for the mode driven by a command held for s."""
+    w = 2 * np.pi * frequency_hz
+    block = np.zeros((3, 3))
+    block[:2, :2] = [[0.0, 1.0], [-w * w, -2 * damping * w]]
+    block[1, 2] = w * w
+    e = expm(block * seconds)
+    return e[:2, :2], e[:2, 2]
+
+
+def axis_model(frequency_hz: float, damping: float, period_s: float, loop_delay_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) over one period for the state [p, v, c_(k-a-1) .. c_(k-1)] and the input 'next increment'."""
+    a = int(np.floor(loop_delay_s / period_s + 1e-9))
+    delta = loop_delay_s - a * period_s  # the older command acts over the first delta of the period
+    phi_rest, g_new = _held_input(frequency_hz, damping, period_s - delta)
+    phi_first, g_first = _held_input(frequency_hz, damping, delta)
+    n = 2 + a + 1
+    A = np.zeros((n, n))
+    A[:2, :2] = phi_rest @ phi_first
+    A[:2, 2] = phi_rest @ g_first  # c_(k-a-1)
+    A[:2, 3] += g_new  # c_(k-a)
+    for i in range(2, n - 1):
+        A[i, i + 1] = 1.0  # the history moves on
+    A[n - 1, n - 1] = 1.0  # the newest command: c_k = c_(k-1) + increment
+    B = np.zeros(n)
+    B[n - 1] = 1.0
+    return A, B
+
+
+def lqr_gain(A: np.ndarray, B: np.ndarray, frequency_hz: float, effort: float) -> np.ndarray:
+    """Gain K (increment = -K e) minimising the sum of p^2 + (v / w)^2 (the mode's energy, in m^2) and
+    effort * increment^2."""
+    q = np.zeros_like(A)
+    q[0, 0], q[1, 1] = 1.0, (2 * np.pi * frequency_hz) ** -2
+    b = B[:, None]
+    P = solve_discrete_are(A, b, q, np.array([[effort]]))
+    return np.linalg.solve(np.array([[effort]]) + b.T @ P @ b, b.T @ P @ A)[0]
+
+
+class ModalController:
+    """Six axes, each its own model, filter and gain. update() takes a pose's base-frame 6-vector, its
+    variances and the reference, and returns the velocity to publish (the bridge integrates it over the
+    period into the increment)."""
+
+    def __init__(self, design: ModalDesign) -> None:
+        design.check()
+        self.design = design
+        T = design.period_s
+        models = [axis_model(f, z, T, design.loop_delay_s) for f, z in zip(design.frequency_hz, design.damping)]
+        n = models[0][0].shape[0]
+        self.n = n
+        self.gain = np.array([lqr_gain(A, B, f, r) for (A, B), f, r
+                              in zip(models, design.frequency_hz, design.effort)])  # (6, n)
+        # the filter's model: the n states above and the offset d, which enters wherever a command does
+        self.A = np.zeros((6, n + 1, n + 1))
+        for i, (A, _) in enumerate(models):
+            self.A[i, :n, :n] = A
+            self.A[i, :2, n] = A[:2, 2] + A[:2, 3]
+            self.A[i, n, n] = 1.0
+        q = np.asarray(design.acceleration_psd)[:, None, None] * np.array([[T ** 3 / 3, T ** 2 / 2], [T ** 2 / 2, T]])
+        self.W = np.zeros((6, n + 1, n + 1))
+        self.W[:, :2, :2] = q
+        self.W[:, n, n] = np.asarray(design.offset_walk) ** 2
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything: the next pose starts the filter (after a stale spell, a restart)."""
+        self.time: float | None = None
+        self.x = np.zeros((6, self.n + 1))
+        self.P = np.zeros((6, self.n + 1, self.n + 1))
+        self.reference_filtered: np.ndarray | None = None
+        self.velocity = np.zeros(6)
+        self.pending = np.zeros(6)  # the increment asked for at the last pose: the next period's input
+        self.skipped = 0
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.x[:, 0].copy()
+
+    def update(self, time: float, z: np.ndarray, variance: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
+        """The velocity for this pose (zero without a reference: the pose is only measured)."""
+        T = self.design.period_s
+        if self.time is not None:
+            gap = (time - self.time) / T
+            if gap < 0.5:
+                self.skipped += 1  # faster than the period: this pose has no increment of its own
+                return self.velocity
+            if gap > MAX_GAP + 0.5:
+                self.reset()
+        if self.time is None:
+            self._start(time, z, variance)
+        else:
+            periods = int(round((time - self.time) / T))
+            for _ in range(periods):  # the periods after the first had no fresh increment from us
+                self._predict()
+            self.time += periods * T  # on the period grid: stamp jitter is not the arm's time
+            self._measure(z, variance)
+        if reference is None:
+            self.velocity = np.zeros(6)
+            return self.velocity
+        return self._control(reference)
+
+    # ---------------------------------------------------------------- the filter
+    def _start(self, time: float, z: np.ndarray, variance: np.ndarray) -> None:
+        self.time = time
+        n = self.n
+        self.x[:] = 0.0
+        self.x[:, 0] = z
+        self.x[:, n] = z  # the arm at rest where it is measured: commands 0, offset = the position
+        self.P[:] = 0.0
+        self.P[:, 0, 0] = variance
+        self.P[:, 1, 1] = 1e-4
+        self.P[:, n, n] = variance
+
+    def _predict(self) -> None:
+        self.x = np.einsum("aij,aj->ai", self.A, self.x)
+        self.x[:, self.n - 1] += self.pending
+        self.pending = np.zeros(6)
+        self.P = self.A @ self.P @ self.A.transpose(0, 2, 1) + self.W
+
+    def _measure(self, z: np.ndarray, variance: np.ndarray) -> None:
+        s = self.P[:, 0, 0] + variance
+        k = self.P[:, :, 0] / s[:, None]  # (6, n+1)
+        self.x += k * (z - self.x[:, 0])[:, None]
+        self.P -= k[:, :, None] * self.P[:, 0, :][:, None, :]
+
+    # ---------------------------------------------------------------- the law
+    def _control(self, reference: np.ndarray) -> np.ndarray:
+        n, T = self.n, self.design.period_s
+        position = self.x[:, 0]
+        if self.reference_filtered is None:
+            self.reference_filtered = position.copy()
+        self.reference_filtered += (reference - self.reference_filtered) * (
+            1.0 - np.exp(-T / self.design.reference_time_constant_s))
+        r = self.reference_filtered
+        error = np.empty((6, n))
+        error[:, 0] = position - r
+        error[:, 1] = self.x[:, 1]
+        error[:, 2:] = self.x[:, 2:n] + (self.x[:, n] - r)[:, None]
+        self.pending = -np.einsum("ai,ai->a", self.gain, error)
+        self.velocity = self.pending / T
+        return self.velocity
+
+    def limit(self, max_speed: np.ndarray) -> np.ndarray:
+        """The velocity within a per-axis limit; the filter is told what was really asked for."""
+        self.velocity = np.clip(self.velocity, -max_speed, max_speed)
+        self.pending = self.velocity * self.design.period_s
+        return self.velocity

@@ -1,0 +1,145 @@
+"""The modal law (core/modal_control.py) on sim_cell's arm model, without ROS: its model of the loop is
+right, it damps the mode where the PD law only avoids it, and it gets there through lost increments."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from profile_pose_ros.core.compensator import AxisKalman, Gains, InputShaper, pd_velocity, zvd_impulses
+from profile_pose_ros.core.modal_control import MAX_GAP, ModalController, ModalDesign, axis_model
+from profile_pose_ros.sim.arm import Arm, ArmModel
+
+TICK, TICKS = 0.004, 3
+PERIOD = TICK * TICKS
+NOISE = np.array([1e-6, 15e-6, 1e-6, 1e-6, 1e-6, 1e-6])
+
+
+def design(**changes) -> ModalDesign:
+    values = dict(frequency_hz=(10.0,) * 6, damping=(0.68, 0.13, 0.53, 0.7, 0.7, 0.7),
+                  effort=(10.0, 30.0, 10.0, 10.0, 10.0, 10.0), acceleration_psd=(1e-3,) * 6, offset_walk=(1e-5,) * 6,
+                  period_s=PERIOD, loop_delay_s=PERIOD + ArmModel().delay_s, reference_time_constant_s=0.25)
+    values.update(changes)
+    return ModalDesign(**values)
+
+
+@pytest.mark.parametrize("periods_of_delay", [1.0, 1.9, 2.5])
+def test_the_discrete_model_matches_the_continuous_arm(periods_of_delay: float) -> None:
+    """A random command sequence through the model's (A, B) and through the differential equation."""
+    f, zeta, delay = 10.0, 0.13, periods_of_delay * PERIOD
+    A, B = axis_model(f, zeta, PERIOD, delay)
+    w = 2 * np.pi * f
+    rng = np.random.default_rng(1)
+    increments = rng.normal(0, 1e-4, 40)
+    commands = np.cumsum(increments)  # c_k, asked for at pose k, moves the arm from k * PERIOD + delay
+
+    def command(t: float) -> float:
+        k = int(np.floor((t - delay) / PERIOD + 1e-9))
+        return commands[k] if k >= 0 else 0.0
+
+    x = np.zeros(A.shape[0])
+    for inc in increments[:30]:
+        x = A @ x + B * inc
+    t_end = 30 * PERIOD
+    breaks = sorted({k * PERIOD + delay for k in range(40)} | {t_end})
+    state, t0 = np.zeros(2), 0.0
+    for t1 in [b for b in breaks if b <= t_end]:
+        if t1 > t0:
+            c = command(0.5 * (t0 + t1))
+            state = solve_ivp(lambda _, s: [s[1], w * w * (c - s[0]) - 2 * zeta * w * s[1]], (t0, t1), state,
+                              rtol=1e-11, atol=1e-14).y[:, -1]
+            t0 = t1
+    assert x[0] == pytest.approx(state[0], abs=1e-9)
+    assert x[1] == pytest.approx(state[1], abs=1e-7)
+
+
+def test_the_model_settles_where_it_is_commanded() -> None:
+    A, B = axis_model(10.0, 0.5, PERIOD, 0.0226)
+    x = A @ np.zeros(A.shape[0]) + B * 1e-3
+    for _ in range(200):
+        x = A @ x
+    assert x[0] == pytest.approx(1e-3, rel=1e-9) and abs(x[1]) < 1e-12
+
+
+def run_loop(law: str, axis: int, target: float, seconds: float = 2.0, lose_every: int = 0,
+             kick_at: float | None = None, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """sim_cell's controller and arm in one loop: each period the increment asked for at the last pose is
+    applied (rounded to 1 um, or lost every lose_every-th period), then a pose is measured with noise."""
+    rng = np.random.default_rng(seed)
+    arm = Arm(ArmModel())
+    modal = ModalController(design())
+    kalman, shaper = AxisKalman(np.array([20.0, 0.5, 20.0, 2.0, 2.0, 2.0])), InputShaper(zvd_impulses(10.0, 0.05))
+    gains = Gains((4.0,) * 6, (0.0,) * 6, (0.05,) * 6)
+    commanded, pending = np.zeros(6), np.zeros(6)
+    reference = np.zeros(6)
+    reference[axis] = target
+    times, positions = [], []
+    for period in range(int(seconds / PERIOD)):
+        t = period * PERIOD
+        if lose_every and period % lose_every == lose_every - 1:
+            pending = np.zeros(6)
+        commanded += np.round(pending * 1e6) * 1e-6
+        if kick_at is not None and abs(t - kick_at) < PERIOD / 2:
+            arm.state[axis, 1] += 0.01  # a knock: 10 mm/s
+        truth = arm.position
+        z = truth + rng.normal(0, NOISE)
+        if law == "modal":
+            modal.update(t, z, NOISE ** 2, reference)
+            velocity = modal.limit(np.full(6, 0.05))
+        else:
+            kalman.update(t, z, NOISE ** 2)
+            velocity = shaper(t, pd_velocity(reference - kalman.position, kalman.velocity, gains))
+        pending = velocity * PERIOD
+        times.append(t)
+        positions.append(truth[axis])
+        for _ in range(TICKS):
+            arm.command = commanded.copy()
+            arm.advance(TICK)
+    return np.array(times), np.array(positions)
+
+
+def test_modal_law_damps_a_knock_the_pd_law_leaves_ringing() -> None:
+    """y: the mode barely decays on its own; after a knock the PD law (which only avoids exciting it)
+    leaves it ringing, the modal law damps it."""
+    ringing = {}
+    for law in ("pd", "modal"):
+        t, y = run_loop(law, axis=1, target=0.0, seconds=2.0, kick_at=0.6)
+        ringing[law] = np.ptp(y[(t > 1.0) & (t < 1.5)])
+    assert ringing["pd"] > 50e-6
+    assert ringing["modal"] < 0.2 * ringing["pd"]
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_modal_law_reaches_a_step_without_overshoot_through_lost_increments(axis: int) -> None:
+    t, y = run_loop("modal", axis=axis, target=1e-3, seconds=2.0, lose_every=20)
+    assert np.mean(y[t > 1.7]) == pytest.approx(1e-3, abs=15e-6)  # the lost motion was made up
+    assert y.max() < 1e-3 * 1.03
+
+
+def test_a_new_reference_is_glided_to_not_jumped() -> None:
+    modal = ModalController(design())
+    z, variance = np.zeros(6), np.full(6, 1e-12)
+    modal.update(0.0, z, variance, None)
+    velocity = modal.update(PERIOD, z, variance, np.array([2e-3, 0, 0, 0, 0, 0]))
+    first_increment = velocity[0] * PERIOD
+    assert 0 < first_increment < 0.05 * 2e-3
+
+
+def test_poses_within_a_period_are_not_used_and_a_long_gap_restarts() -> None:
+    modal = ModalController(design())
+    z, variance, reference = np.zeros(6), np.full(6, 1e-12), np.full(6, 1e-3)
+    for k in range(5):
+        modal.update(k * PERIOD, z, variance, reference)
+    velocity = modal.update(4.3 * PERIOD, z + 1.0, variance, reference)  # 1 kHz: no increment of its own
+    assert modal.skipped == 1 and np.array_equal(velocity, modal.velocity)
+    assert modal.position[0] == pytest.approx(0.0, abs=1e-6)  # and not measured either
+    modal.update((5 + MAX_GAP + 1) * PERIOD, z + 5e-3, variance, reference)
+    assert modal.position[0] == pytest.approx(5e-3)  # started again where the arm now is
+
+
+@pytest.mark.parametrize("change", [dict(frequency_hz=(10.0,) * 5), dict(damping=(1.0,) * 6),
+                                    dict(effort=(0.0,) * 6), dict(loop_delay_s=0.5 * PERIOD),
+                                    dict(reference_time_constant_s=0.0), dict(offset_walk=(-1.0,) * 6)])
+def test_a_bad_design_is_refused(change: dict) -> None:
+    with pytest.raises(ValueError):
+        ModalController(design(**change))
