@@ -4,6 +4,7 @@ from __future__ import annotations
 import struct
 import zlib
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -108,6 +109,21 @@ def test_clamp_never_exceeds_the_limit(increment, limits) -> None:
 def test_units() -> None:
     assert mp.metres_to_units([1e-3, -2e-6, 0.0, 3.141592653589793 / 180, 0.0, 0.0]) == (1000, -2, 0, 10000, 0, 0)
     assert mp.units_to_metres((1000, 0, 0, 10000, 0, 0))[0] == pytest.approx(1e-3)
+
+
+def test_carried_rounding_sends_the_sum_asked_for_within_half_a_unit() -> None:
+    rounding = mp.CarriedRounding()
+    asked = np.array([0.4e-6, -0.7e-6, 2.5e-6, 1e-7, 0.0, -3e-6])  # m, rad per period
+    scale = np.array([mp.UM_PER_M] * 3 + [mp.TENTH_MILLIDEG_PER_RAD] * 3)
+    sent = np.zeros(6)
+    for k in range(1, 101):
+        sent += rounding(asked)
+        assert np.all(np.abs(sent - k * asked * scale) <= 0.5 + 1e-9)
+    assert sent[0] == 40 and mp.metres_to_units(asked)[0] == 0  # one by one, 0.4 um would never move
+    rounding.reset()
+    assert rounding([0.4e-6] + [0.0] * 5) == (0,) * 6
+    with pytest.raises(mp.MotoPlusProtocolError):
+        rounding([0.0] * 5)
 
 
 def test_sequence_rule_ignores_old_frames_and_faults_after_three_missing() -> None:

@@ -160,13 +160,14 @@ class ModalController:
         if self.time is None:
             self._start(time, z, variance)
         else:
-            periods = int(round((time - self.time) / T))
-            for _ in range(periods):  # the periods after the first had no fresh increment from us
-                self._predict()
-            self.time += periods * T  # on the period grid: stamp jitter is not the arm's time
+            # whole periods: stamp jitter is not the arm's time (and the stamps, not a grid, stay in step
+            # with the controller's clock)
+            for _ in range(max(1, int(round((time - self.time) / T)))):
+                self._predict()  # the periods after the first had no fresh increment from us
+            self.time = time
             self._measure(z, variance)
         if reference is None:
-            self.velocity = np.zeros(6)
+            self.velocity, self.pending = np.zeros(6), np.zeros(6)
             return self.velocity
         return self._control(reference)
 

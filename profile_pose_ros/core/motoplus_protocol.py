@@ -231,6 +231,29 @@ def units_to_metres(units) -> tuple[float, ...]:
     return tuple(v / (UM_PER_M if i < 3 else TENTH_MILLIDEG_PER_RAD) for i, v in enumerate(units))
 
 
+class CarriedRounding:
+    """Metres and radians to units for a stream of increments, each rounding's remainder carried into the
+    next: the sum of what is sent stays within half a unit of the sum asked for. Rounded one by one, a
+    loop asking 0.4 um a period would send nothing at all, and the error of many would wander (the loop
+    then corrects it, as a disturbance that rings the arm's mode)."""
+
+    def __init__(self) -> None:
+        self.remainder = [0.0] * 6  # units
+
+    def reset(self) -> None:
+        self.remainder = [0.0] * 6
+
+    def __call__(self, vector) -> tuple[int, ...]:
+        vector = [float(v) for v in vector]
+        if len(vector) != 6:
+            raise MotoPlusProtocolError(f"expected 6 values (x y z rx ry rz), got {len(vector)}", "size")
+        wanted = [v * (UM_PER_M if i < 3 else TENTH_MILLIDEG_PER_RAD) + r
+                  for i, (v, r) in enumerate(zip(vector, self.remainder))]
+        units = tuple(int(round(w)) for w in wanted)
+        self.remainder = [w - u for w, u in zip(wanted, units)]
+        return units
+
+
 def clamp(increment, limits) -> tuple[tuple[int, ...], bool]:
     """Each axis within +-limit; also whether anything was cut."""
     out = tuple(max(-lim, min(lim, v)) for v, lim in zip(six(increment), six(limits)))

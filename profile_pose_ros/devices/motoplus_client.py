@@ -70,6 +70,7 @@ class MotoPlusClient:
         self.host, self.port, self.limits = host, port, limits
         self.monitor = SafetyMonitor(mp.metres_to_units(limits.max_step), mp.metres_to_units(limits.max_offset),
                                      max_age_s)
+        self.rounding = mp.CarriedRounding()  # to units, each remainder carried into the next increment
         self.on_sent = on_sent
         self.await_correction = await_correction
         self.increment, self.on_state, self.log = increment, on_state, log
@@ -100,6 +101,7 @@ class MotoPlusClient:
     def arm(self) -> None:
         """Ask for a session; sends HELLO now if connected, else on the next connection."""
         self.monitor.rearmed()
+        self.rounding.reset()
         self._arm_requested.set()
 
     def disarm(self, reason: str) -> None:
@@ -212,11 +214,12 @@ class MotoPlusClient:
             self.counters.zero_corrections += 1
         else:
             step, stamp = move
-            units = self._limit(mp.metres_to_units(step))
+            units = self._limit(self.rounding(step))
         offset = self.last_state.offset if self.last_state is not None else None
         broken = self.monitor.check(units, self.state == ARMED, stamp, now, offset)
         if broken:
             units, stamp = (0,) * 6, None
+            self.rounding.reset()
         if self._send(mp.Correction(units, self.limits.frame)) and stamp is not None and self.on_sent is not None:
             self.on_sent(units, stamp, time.time())
         self.counters.corrections += 1
