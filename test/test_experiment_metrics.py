@@ -7,8 +7,10 @@ import pytest
 from profile_pose_ros.tools.experiment import METRICS, REACHED, damping_from_overshoot, step_metrics
 
 
-def second_order_step(zeta: float, size: float = 1e-3, rate: float = 83.333) -> tuple[np.ndarray, np.ndarray]:
-    t = np.arange(0, 1.5, 1 / rate)
+def second_order_step(zeta: float, size: float = 1e-3, rate: float = 83.333,
+                      phase: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The step response sampled at `rate`, the first sample `phase` periods after the step."""
+    t = np.arange(phase / rate, 1.5, 1 / rate)
     wn = 2 * np.pi * 10
     wd = wn * np.sqrt(1 - zeta ** 2)
     y = size * (1 - np.exp(-zeta * wn * t) * (np.cos(wd * t) + zeta / np.sqrt(1 - zeta ** 2) * np.sin(wd * t)))
@@ -27,6 +29,16 @@ def test_peak_frequency_magnitude_sees_the_ringing_not_the_step() -> None:
     ringing = step_metrics(*second_order_step(0.13), 1e-3)["Mf_um"]
     smooth = step_metrics(*second_order_step(0.95), 1e-3)["Mf_um"]
     assert ringing > 20 * smooth
+
+
+@pytest.mark.parametrize("zeta", [0.53, 0.68])
+def test_mf_does_not_depend_on_where_the_samples_fall(zeta: float) -> None:
+    """The same response sampled at 83.3 Hz with the step anywhere between two samples: the window starts
+    at the interpolated 90 % time, not at the next sample (which moved it across the first overshoot:
+    the figure spread by +-25 % with the phase alone)."""
+    mf = [step_metrics(*second_order_step(zeta, phase=phase), 1e-3)["Mf_um"] for phase in np.linspace(0, 1, 8,
+                                                                                                     endpoint=False)]
+    assert np.std(mf) < 0.03 * np.mean(mf)
 
 
 def test_a_slow_smooth_approach_leaves_almost_nothing_in_the_band() -> None:

@@ -70,13 +70,25 @@ def step_metrics(t: np.ndarray, y: np.ndarray, size: float) -> dict:
             "end_fraction": float(np.mean(y[end]) / size)}
 
 
+def rise_time_90(t: np.ndarray, y: np.ndarray, size: float) -> float:
+    """When the response crosses 90 % of the step, interpolated between the two samples around it. The
+    first sample above it (the rule until 2026-12-02) falls up to a period later depending on where the
+    samples happen to sit: a 12 ms sample in an open-loop rise of ~30 ms moved Mf's window across the first
+    overshoot, and the same response read 9-18 um (z, 2 mm) with the sampling phase alone."""
+    risen = np.nonzero(y >= 0.9 * size)[0]
+    if not len(risen):
+        return float(t[0])
+    i = int(risen[0])
+    if i == 0 or y[i] == y[i - 1]:
+        return float(t[i])
+    return float(t[i - 1] + (0.9 * size - y[i - 1]) / (y[i] - y[i - 1]) * (t[i] - t[i - 1]))
+
+
 def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
     """Single-sided amplitude spectrum (m) of the second after the response reaches 90 % of the step,
     less its 0.1 s moving average (which passes 10 Hz whole and removes the slow approach)."""
     dt = float(np.median(np.diff(t)))
-    risen = np.nonzero(y >= 0.9 * size)[0]
-    start = t[risen[0]] if len(risen) else t[0]
-    grid = np.arange(start, min(start + 1.0, t[-1]), dt)
+    grid = np.arange(start := rise_time_90(t, y, size), min(start + 1.0, t[-1]), dt)
     residual = np.interp(grid, t, y) - size
     width = max(1, int(round(0.1 / dt)))
     # odd reflection continues the local trend past the window's ends, so a straight stretch is removed
