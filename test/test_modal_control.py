@@ -62,9 +62,11 @@ def test_the_model_settles_where_it_is_commanded() -> None:
 
 
 def run_loop(law: str, axis: int, target: float, seconds: float = 2.0, lose_every: int = 0,
-             kick_at: float | None = None, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+             kick_at: float | None = None, seed: int = 0, disarmed: tuple[float, float] = (0.0, 0.0),
+             sent: list | None = None) -> tuple[np.ndarray, np.ndarray]:
     """sim_cell's controller and arm in one loop: each period the increment asked for at the last pose is
-    applied (rounded to 1 um, or lost every lose_every-th period), then a pose is measured with noise."""
+    applied (rounded to 1 um; lost every lose_every-th period and while `disarmed`), then a pose is measured
+    with noise. `sent` collects (time, increment on the axis)."""
     rng = np.random.default_rng(seed)
     arm = Arm(ArmModel())
     modal = ModalController(design())
@@ -76,7 +78,7 @@ def run_loop(law: str, axis: int, target: float, seconds: float = 2.0, lose_ever
     times, positions = [], []
     for period in range(int(seconds / PERIOD)):
         t = period * PERIOD
-        if lose_every and period % lose_every == lose_every - 1:
+        if lose_every and period % lose_every == lose_every - 1 or disarmed[0] <= t < disarmed[1]:
             pending = np.zeros(6)
         commanded += np.round(pending * 1e6) * 1e-6
         if kick_at is not None and abs(t - kick_at) < PERIOD / 2:
@@ -90,6 +92,8 @@ def run_loop(law: str, axis: int, target: float, seconds: float = 2.0, lose_ever
             kalman.update(t, z, NOISE ** 2)
             velocity = shaper(t, pd_velocity(reference - kalman.position, kalman.velocity, gains))
         pending = velocity * PERIOD
+        if sent is not None:
+            sent.append((t, pending[axis]))
         times.append(t)
         positions.append(truth[axis])
         for _ in range(TICKS):
@@ -114,6 +118,18 @@ def test_modal_law_reaches_a_step_without_overshoot_through_lost_increments(axis
     t, y = run_loop("modal", axis=axis, target=1e-3, seconds=2.0, lose_every=20)
     assert np.mean(y[t > 1.7]) == pytest.approx(1e-3, abs=15e-6)  # the lost motion was made up
     assert y.max() < 1e-3 * 1.03
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_after_two_seconds_of_nothing_reaching_the_arm_the_law_resumes_without_a_burst(axis: int) -> None:
+    """The bridge disarmed mid-step: the law went on asking, nothing moved. Its offset state took in what
+    never arrived, so re-armed it goes on from where the arm is: no wound-up jump, no overshoot."""
+    sent: list = []
+    t, y = run_loop("modal", axis=axis, target=1e-3, seconds=4.0, disarmed=(0.3, 2.3), sent=sent)
+    resumed = [abs(inc) for when, inc in sent if when >= 2.3]
+    assert y[t >= 2.3][0] < 0.8e-3  # the step was cut short
+    assert max(resumed) < 40e-6  # per 12 ms period: the law's normal pace, nothing stored up
+    assert y.max() < 1e-3 * 1.02 and np.mean(y[t > 3.7]) == pytest.approx(1e-3, abs=15e-6)
 
 
 def test_a_new_reference_is_glided_to_not_jumped() -> None:
