@@ -94,11 +94,12 @@ FAULTS = (
 
 
 class FaultRun:
-    def __init__(self, graph: Graph, rate_hz: float, refine_model: str) -> None:
+    def __init__(self, graph: Graph, rate_hz: float, refine_model: str, control_law: str = "modal") -> None:
         from geometry_msgs.msg import TwistStamped
 
         self.graph = graph
-        self.exp = Experiment(graph, rate_hz, 5e-6, refine_model=refine_model)
+        self.exp = Experiment(graph, rate_hz, 5e-6, refine_model=refine_model,
+                              compensator={"control_law": control_law})
         self.period = self.exp.period
         self.max_step = np.array(_DEFAULTS["max_step"])
         self.max_age = float(_DEFAULTS["max_age"])
@@ -230,13 +231,14 @@ class FaultRun:
         self.load(0)
 
 
-def run(rate_hz: float, refine_model: str, out, names: list[str] | None = None) -> list[dict]:
+def run(rate_hz: float, refine_model: str, out, names: list[str] | None = None,
+        control_law: str = "modal") -> list[dict]:
     faults = [f for f in FAULTS if names is None or any(n.lower() in f.name.lower() for n in names)]
     graph = Graph(out / "logs", client_name="profile_pose_faults")
     results = []
     fault_run = None
     try:
-        fault_run = FaultRun(graph, rate_hz, refine_model)
+        fault_run = FaultRun(graph, rate_hz, refine_model, control_law)
         fault_run.start()
         for fault in faults:
             print(f"  {fault.name} ...", flush=True)
@@ -275,11 +277,14 @@ def main(argv=None) -> int:
     parser.add_argument("--rate", type=float, default=83.333, help="control rate: 83.333 (12 ms) or 250 (4 ms)")
     parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
     parser.add_argument("--only", nargs="+", help="only the faults whose names contain one of these words")
+    parser.add_argument("--control-law", default="modal", choices=["pd", "modal"],
+                        help="pd_compensator's (config/cell.yaml's: modal)")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "faults")
-    print(f"injecting faults into the closed loop at {args.rate:g} Hz (logs in {out / 'logs'})", flush=True)
-    results = run(args.rate, args.refine_model, out, args.only)
+    print(f"injecting faults into the closed loop at {args.rate:g} Hz, {args.control_law} law (logs in "
+          f"{out / 'logs'})", flush=True)
+    results = run(args.rate, args.refine_model, out, args.only, args.control_law)
     print_table(results, 12.0 if args.rate < 200 else 4.0)
     write_json(out / "faults.json", {"rate_hz": args.rate, "results": results})
     failed = [r["fault"] for r in results if not r["ok"]]
