@@ -238,8 +238,11 @@ class Experiment:
             during = (t >= start) & (t < start + RECORD_S)
             expected = RECORD_S / self.period
             if during.sum() < 0.5 * expected or not before.any():
-                print(f"  warning: {name} has {during.sum()} of ~{expected:.0f} samples in this step (poses lost: "
-                      f"see the estimator's diagnostics); its metrics are left out", flush=True)
+                why = (f"{during.sum()} of ~{expected:.0f} samples in this step (poses lost: see the estimator's "
+                       f"diagnostics)" if before.any() else
+                       f"no sample stamped in the {BEFORE_S:g} s before the step and {during.sum()} of "
+                       f"~{expected:.0f} in it (the stream stalled, then caught up)")
+                print(f"  warning: {name}: {why}; its metrics are left out", flush=True)
                 out[name] = {"t": [], "y": [], **dict.fromkeys(METRICS, float("nan"))}
                 continue
             y = (p[during] - p[before].mean(axis=0)) @ unit
