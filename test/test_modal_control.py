@@ -151,7 +151,7 @@ def test_a_new_reference_is_glided_to_not_jumped() -> None:
     assert 0 < first_increment < 0.05 * 2e-3
 
 
-def test_poses_within_a_period_are_not_used_and_a_long_gap_restarts() -> None:
+def test_poses_within_a_period_are_not_used_and_a_long_gap_or_time_going_back_restarts() -> None:
     modal = ModalController(design())
     z, variance, reference = np.zeros(6), np.full(6, 1e-12), np.full(6, 1e-3)
     for k in range(5):
@@ -161,6 +161,8 @@ def test_poses_within_a_period_are_not_used_and_a_long_gap_restarts() -> None:
     assert modal.position[0] == pytest.approx(0.0, abs=1e-6)  # and not measured either
     modal.update((5 + MAX_GAP + 1) * PERIOD, z + 5e-3, variance, reference)
     assert modal.position[0] == pytest.approx(5e-3)  # started again where the arm now is
+    modal.update(0.0, z + 7e-3, variance, reference)  # the clock went back: not a pose "within a period"
+    assert modal.skipped == 1 and modal.position[0] == pytest.approx(7e-3)
 
 
 @pytest.mark.parametrize("change", [dict(frequency_hz=(10.0,) * 5), dict(damping=(1.0,) * 6),

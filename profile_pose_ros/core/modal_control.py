@@ -22,7 +22,8 @@ State: [p, v, c_(k-a-1) .. c_(k-1), d] with a = floor(loop_delay / T); the input
 The reference passes through a first-order filter (`reference_time_constant`) so that a step is approached
 smoothly; it starts from where the arm is estimated to be, so a new reference is glided to, never jumped.
 Poses must come once per control period (the cell triggers the profiler each period): a pose less than
-half a period after the previous one is not used, and a gap of more than MAX_GAP periods restarts.
+half a period after the previous one is not used; a gap of more than MAX_GAP periods, or time going
+backwards, restarts.
 """
 from __future__ import annotations
 
@@ -131,6 +132,7 @@ class ModalController:
         self.W = np.zeros((6, n + 1, n + 1))
         self.W[:, :2, :2] = q
         self.W[:, n, n] = np.asarray(design.offset_walk) ** 2
+        self.skipped = 0  # poses less than half a period after the one before (over the node's life)
         self.reset()
 
     def reset(self) -> None:
@@ -141,7 +143,6 @@ class ModalController:
         self.reference_filtered: np.ndarray | None = None
         self.velocity = np.zeros(6)
         self.pending = np.zeros(6)  # the increment asked for at the last pose: the next period's input
-        self.skipped = 0
 
     @property
     def position(self) -> np.ndarray:
@@ -152,11 +153,11 @@ class ModalController:
         T = self.design.period_s
         if self.time is not None:
             gap = (time - self.time) / T
-            if gap < 0.5:
+            if gap < 0 or gap > MAX_GAP + 0.5:
+                self.reset()  # time went backwards (a replayed bag, a restarted clock) or a long gap
+            elif gap < 0.5:
                 self.skipped += 1  # faster than the period: this pose has no increment of its own
                 return self.velocity
-            if gap > MAX_GAP + 0.5:
-                self.reset()
         if self.time is None:
             self._start(time, z, variance)
         else:
