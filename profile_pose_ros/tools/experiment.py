@@ -70,7 +70,7 @@ def step_metrics(t: np.ndarray, y: np.ndarray, size: float) -> dict:
             "end_fraction": float(np.mean(y[end]) / size)}
 
 
-def rise_time_90(t: np.ndarray, y: np.ndarray, size: float) -> float:
+def time_at_90_percent(t: np.ndarray, y: np.ndarray, size: float) -> float:
     """When the response crosses 90 % of the step, interpolated between the two samples around it. The
     first sample above it (the rule until 2026-12-02) falls up to a period later depending on where the
     samples happen to sit: a 12 ms sample in an open-loop rise of ~30 ms moved Mf's window across the first
@@ -88,7 +88,7 @@ def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.nd
     """Single-sided amplitude spectrum (m) of the second after the response reaches 90 % of the step,
     less its 0.1 s moving average (which passes 10 Hz whole and removes the slow approach)."""
     dt = float(np.median(np.diff(t)))
-    grid = np.arange(start := rise_time_90(t, y, size), min(start + 1.0, t[-1]), dt)
+    grid = np.arange(start := time_at_90_percent(t, y, size), min(start + 1.0, t[-1]), dt)
     residual = np.interp(grid, t, y) - size
     width = max(1, int(round(0.1 / dt)))
     # odd reflection continues the local trend past the window's ends, so a straight stretch is removed
