@@ -33,6 +33,7 @@ FAULT_SEQUENCE_GAP, FAULT_WATCHDOG, FAULT_LIMIT, FAULT_PROTOCOL, FAULT_NOT_ARMED
 
 UM_PER_M = 1e6
 TENTH_MILLIDEG_PER_RAD = 1e4 * 180.0 / 3.141592653589793
+UNITS_PER_SI = (UM_PER_M,) * 3 + (TENTH_MILLIDEG_PER_RAD,) * 3  # x y z (m), rx ry rz (rad) -> units
 
 
 RULES = ("length", "short", "checksum", "magic", "version", "type", "size", "frame", "limits", "text")
@@ -224,11 +225,11 @@ class FrameReader:
 
 def metres_to_units(vector) -> tuple[int, ...]:
     """[x y z (m), rx ry rz (rad)] -> the controller's int units (um, 0.0001 deg), rounded."""
-    return tuple(int(round(v * (UM_PER_M if i < 3 else TENTH_MILLIDEG_PER_RAD))) for i, v in enumerate(vector))
+    return tuple(int(round(v * scale)) for v, scale in zip(vector, UNITS_PER_SI))
 
 
 def units_to_metres(units) -> tuple[float, ...]:
-    return tuple(v / (UM_PER_M if i < 3 else TENTH_MILLIDEG_PER_RAD) for i, v in enumerate(units))
+    return tuple(v / scale for v, scale in zip(units, UNITS_PER_SI))
 
 
 class CarriedRounding:
@@ -247,8 +248,7 @@ class CarriedRounding:
         vector = [float(v) for v in vector]
         if len(vector) != 6:
             raise MotoPlusProtocolError(f"expected 6 values (x y z rx ry rz), got {len(vector)}", "size")
-        wanted = [v * (UM_PER_M if i < 3 else TENTH_MILLIDEG_PER_RAD) + r
-                  for i, (v, r) in enumerate(zip(vector, self.remainder))]
+        wanted = [v * scale + r for v, scale, r in zip(vector, UNITS_PER_SI, self.remainder)]
         units = tuple(int(round(w)) for w in wanted)
         self.remainder = [w - u for w, u in zip(wanted, units)]
         return units

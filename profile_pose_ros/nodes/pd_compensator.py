@@ -205,7 +205,7 @@ class PdCompensatorNode(Node):
         self.last_pose_stamp = stamp
         self.poses += 1
         if self.modal is not None:
-            velocity = self.modal.update(stamp, z, variance, self.reference)
+            self.modal.update(stamp, z, variance, self.reference)
             if self.reference is None:
                 return  # no target yet: the watchdog keeps the output at zero
             self.last_error = self.reference - self.modal.position

@@ -19,11 +19,11 @@ SOURCE_CONFIG = Path(__file__).resolve().parents[2] / "config"
 
 FRAMES = {"gauge_frame": "gauge", "profiler_frame": "profiler", "base_frame": "base"}
 
+CELL_CONTROL_LAW = "modal"  # the simulated arm's mode is known (its open-loop step gives it): the law that damps it
 SIM_CELL = {
     "profiler_driver": {"serial_url": "socket://127.0.0.1:24693"},
     "pose_estimator": {"refine_model": "dense", "max_profile_age": 0.05},
-    # the simulated arm's mode is known (its open-loop step gives it): the law that damps it
-    "pd_compensator": {"control_law": "modal"},
+    "pd_compensator": {"control_law": CELL_CONTROL_LAW},
 }
 HARDWARE = {
     "profiler_driver": {"backend": "ljx", "host": "192.168.0.1", "library_path": "/opt/keyence/lib/libljxacom.so",

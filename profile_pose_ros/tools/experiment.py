@@ -19,6 +19,7 @@ import numpy as np
 
 from ..nodes.messages import pose_stamped, rotation_translation, stamp_ns
 from ..bags import bag_info
+from .config_files import CELL_CONTROL_LAW
 from .graph import Graph, free_port
 from .report import run_dir, table, write_json
 
@@ -409,9 +410,9 @@ def main(argv=None) -> int:
     parser.add_argument("--kp", type=float, nargs=6, help="pd_compensator kp (else its parameter file's)")
     parser.add_argument("--kd", type=float, nargs=6, help="pd_compensator kd")
     parser.add_argument("--psd", type=float, nargs=6, help="pd_compensator acceleration_psd (Kalman process noise)")
-    parser.add_argument("--control-law", default="modal", choices=["pd", "modal"],
-                        help="pd_compensator control_law: modal damps the arm's mode (default), pd only keeps "
-                             "its own commands away from it")
+    parser.add_argument("--control-law", default=CELL_CONTROL_LAW, choices=["pd", "modal"],
+                        help="pd_compensator control_law (default: config/cell.yaml's): modal damps the arm's "
+                             "mode, pd only keeps its own commands away from it")
     parser.add_argument("--modes", nargs="+", default=["open", "closed"], choices=["open", "closed"])
     parser.add_argument("--refine-model", default="dense", choices=["corners", "dense"],
                         help="pose_estimator's refinement: dense fits every point (~1.6x less noise along the "
@@ -426,13 +427,13 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     out = run_dir(args.out, "experiment")
     bag = None if args.no_bag else out / "bag"
-    gains = {k: list(v) for k, v in (("kp", args.kp), ("kd", args.kd), ("acceleration_psd", args.psd)) if v}
-    gains["control_law"] = args.control_law
+    compensator = {k: list(v) for k, v in (("kp", args.kp), ("kd", args.kd), ("acceleration_psd", args.psd)) if v}
+    compensator["control_law"] = args.control_law
     print(f"Table IV protocol at {args.rate:g} Hz: {len(args.axes)} axes x {len(args.sizes)} sizes x "
           f"{args.repeats} repeats, open and closed loop ({args.control_law} law); gauge {args.gauge or 'config/gauge_paper_n5.yaml'}, "
           f"{args.refine_model} refinement, {args.noise * 1e6:g} um profile noise; logs in {out / 'logs'}",
           flush=True)
-    result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=gains,
+    result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=compensator,
                  modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge,
                  composed=args.composed)
     if len(args.modes) < 2:  # nothing to compare: the runs only

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..nodes.messages import stamp_ns, twist_vector
 from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
+from .config_files import CELL_CONTROL_LAW
 from .experiment import Experiment
 from .graph import Graph
 from .report import nearest_stamp, run_dir, table, write_json
@@ -94,7 +95,7 @@ FAULTS = (
 
 
 class FaultRun:
-    def __init__(self, graph: Graph, rate_hz: float, refine_model: str, control_law: str = "modal") -> None:
+    def __init__(self, graph: Graph, rate_hz: float, refine_model: str, control_law: str) -> None:
         from geometry_msgs.msg import TwistStamped
 
         self.graph = graph
@@ -232,7 +233,7 @@ class FaultRun:
 
 
 def run(rate_hz: float, refine_model: str, out, names: list[str] | None = None,
-        control_law: str = "modal") -> list[dict]:
+        control_law: str = CELL_CONTROL_LAW) -> list[dict]:
     faults = [f for f in FAULTS if names is None or any(n.lower() in f.name.lower() for n in names)]
     graph = Graph(out / "logs", client_name="profile_pose_faults")
     results = []
@@ -277,8 +278,8 @@ def main(argv=None) -> int:
     parser.add_argument("--rate", type=float, default=83.333, help="control rate: 83.333 (12 ms) or 250 (4 ms)")
     parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
     parser.add_argument("--only", nargs="+", help="only the faults whose names contain one of these words")
-    parser.add_argument("--control-law", default="modal", choices=["pd", "modal"],
-                        help="pd_compensator's (config/cell.yaml's: modal)")
+    parser.add_argument("--control-law", default=CELL_CONTROL_LAW, choices=["pd", "modal"],
+                        help="pd_compensator's (default: config/cell.yaml's)")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "faults")
