@@ -74,8 +74,13 @@ def test_recorded_profiles_replay_to_the_recorded_poses_bit_for_bit(tmp_path) ->
         # the estimator's publisher matched to the recorder and to this client (seeing them is not enough: a pose
         # published before its publisher has matched them is lost to them)
         assert graph.spin_until(lambda: int(graph.diagnostic("pose_estimator", "pose_subscribers", "0")) >= 2, 60.0)
+        # The estimator takes profiles best effort (sensor-data QoS): on a loaded machine a reader that has
+        # not quite matched, or whose receive thread is starved while ~50 kB profiles arrive at 83 Hz, loses
+        # some (11 of 154 once, in a full CI run on a slow day). What is tested here is the re-estimate, bit
+        # for bit, not real-time playback: play at half speed, after a longer grace.
         graph.start("bag_player", {"bag": str(recorded), "topics": ["/profile"], "wait_for_subscribers": True,
-                                       "wait_timeout": 60.0})  # a loaded machine can take > 10 s to match them
+                                   "wait_timeout": 60.0,  # a loaded machine can take > 10 s to match them
+                                   "discovery_grace": 2.0, "rate": 0.5})
         player = graph.processes.pop("bag_player")  # it exits by itself at the end of the bag
         assert graph.spin_until(lambda: len(poses) >= report["replayed_poses"] and player.poll() is not None,
                                 120.0), (f"{len(poses)} poses of {report['replayed_poses']}; player exit code "
