@@ -44,7 +44,9 @@ def test_quick_node_benchmark_runs_both_rates(tmp_path):
     stdout, data = run_quick("profile_pose_node_benchmark", "node_benchmark.json", tmp_path)
     runs = data["runs"]
     assert "pose_estimator under load" in stdout
-    assert [r["rate_hz"] for r in runs] == [83.3, 1000.0]
+    assert [(r["rate_hz"], r["node"]) for r in runs] == [(83.3, "null"), (83.3, "pose_estimator"),
+                                                          (1000.0, "null"), (1000.0, "pose_estimator")]
+    assert "the estimator adds" in stdout
     for r in runs:
         assert r["sent"] > 0 and 0 < r["received"] <= r["sent"]
         assert r["latency_ms"]["median"] > 0 and r["peak_rss_mib"] > 0 and r["cpu_share"] > 0

@@ -6,6 +6,10 @@ Reported: poses received / profiles sent, latency from the profile's stamp (set 
 to the pose's arrival here (median, p99, max), the node's CPU share of one core, its resident memory
 each second (peak and growth), and the profiles it reported lost or rejected in its diagnostics.
 
+Beside each rate's run, the same load goes into a null node first (tools/null_node.py: the estimator's
+way in and out, no estimation), so the table shows what this machine's rclpy, DDS and scheduling cost
+any node, measured in the same minutes as the estimator; `--no-baseline` leaves it out.
+
 Arrival is timed twice: when DDS delivered the pose into this process (the reader's reception time,
 stamped by DDS's receive thread: the node's latency, what any subscriber could have) and when this
 client's Python thread took it (that plus this client's own wake-up on a loaded machine).
@@ -80,20 +84,28 @@ def publisher_main(domain_id: int, rate_hz: float, seconds: float, seed: int, ga
     return 0
 
 
+NODES = {  # the node under load: (label, console script or None, module)
+    "pose_estimator": ("pose_estimator", "pose_estimator", "profile_pose_ros.nodes.pose_estimator"),
+    "null": ("null node (floor)", None, "profile_pose_ros.tools.null_node"),
+}
+
+
 class LoadRun(NodeProcess):
     """One rate: a node process, a publisher thread at the rate, and a receiver."""
 
     def __init__(self, gauge: Gauge, rate_hz: float, seconds: float, out_dir, seed: int,
-                 node_params: tuple[str, ...] = ()) -> None:
+                 node_params: tuple[str, ...] = (), node: str = "pose_estimator") -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import PointCloud2
 
-        super().__init__("pose_estimator", "profile_pose_ros.nodes.pose_estimator",
-                         ["-p", f"gauge_file:={gauge.source}", *(a for p in node_params for a in ("-p", p))],
+        _, executable, module = NODES[node]
+        params = ["-p", f"gauge_file:={gauge.source}", *(a for p in node_params for a in ("-p", p))]
+        super().__init__(executable, module, params if node == "pose_estimator" else [],
                          "node_benchmark", 1 + (os.getpid() + int(rate_hz)) % 200,
-                         out_dir / f"pose_estimator_{rate_hz:g}Hz.log")
+                         out_dir / f"{node}_{rate_hz:g}Hz.log")
+        self.node_kind = node
         self.rate_hz, self.seconds, self.seed, self.gauge_file = rate_hz, seconds, seed, gauge.source
         self.messages = rendered_profiles(gauge, seed, 5)  # for the warm-up
         self.publisher = self.node.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
@@ -164,7 +176,7 @@ class LoadRun(NodeProcess):
         lost = int(max(reported("profiles_lost"), default=0))
         callback_ms = reported("mean_processing_ms")
         rss = [s["VmRSS"] / 1024 for s in self.samples]
-        return {"rate_hz": self.rate_hz, "seconds": self.seconds, "sent": self.sent, "received": len(self.latencies),
+        return {"node": self.node_kind, "rate_hz": self.rate_hz, "seconds": self.seconds, "sent": self.sent, "received": len(self.latencies),
                 "delivered": len(self.latencies) / max(1, self.sent),
                 "latency_ms": summary(np.array(self.latencies) * 1e3),
                 "latency_taken_ms": summary(np.array(self.taken_latencies) * 1e3),
@@ -183,6 +195,8 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="3 s per rate (for tests)")
     parser.add_argument("--gauge", default=str(config_path(DEFAULT_GAUGE)))
     parser.add_argument("--out", default="runs")
+    parser.add_argument("--no-baseline", dest="baseline", action="store_false",
+                        help="skip the null node run before each rate's estimator run")
     parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="a pose_estimator parameter (repeatable), e.g. queue_depth:=20")
     parser.add_argument("--publisher", nargs=5, metavar=("DOMAIN", "RATE", "SECONDS", "SEED", "GAUGE"),
@@ -194,22 +208,33 @@ def main(argv=None) -> int:
     seconds = 3.0 if args.quick else args.seconds
     gauge = Gauge.from_yaml(args.gauge)
     out = run_dir(args.out, "node-benchmark")
-    results, rows = [], []
+    results, rows, notes = [], [], []
+    nodes = ["null", "pose_estimator"] if args.baseline else ["pose_estimator"]
     for k, rate in enumerate(args.rates):
-        print(f"{rate:g} Hz for {seconds:g} s ...", flush=True)
-        run = LoadRun(gauge, rate, seconds, out, seed=k, node_params=tuple(args.param))
-        try:
-            r = run.run()
-        finally:
-            run.close()
-        results.append(r)
-        lat = r["latency_ms"]
-        rows.append([f"{rate:g} Hz", f"{r['received']}/{r['sent']}", f"{100 * r['delivered']:.2f} %", lat["median"],
-                     lat["p99"], lat["max"], r["latency_taken_ms"]["p99"], f"{100 * r['cpu_share']:.1f} %", r["peak_rss_mib"], r["rss_growth_mib"],
-                     str(r["node_reported_lost"]), str(r["poses_lost_to_client"]), r["node_callback_ms"]])
-    print(table(["rate", "poses/profiles", "delivered", "latency median (ms)", "p99", "max", "p99 taken", "node CPU",
+        by_node = {}
+        for node in nodes:
+            print(f"{rate:g} Hz for {seconds:g} s, {NODES[node][0]} ...", flush=True)
+            run = LoadRun(gauge, rate, seconds, out, seed=k, node_params=tuple(args.param), node=node)
+            try:
+                r = run.run()
+            finally:
+                run.close()
+            results.append(r)
+            by_node[node] = r
+            lat = r["latency_ms"]
+            rows.append([f"{rate:g} Hz", NODES[node][0], f"{r['received']}/{r['sent']}", f"{100 * r['delivered']:.2f} %",
+                         lat["median"], lat["p99"], lat["max"], r["latency_taken_ms"]["p99"],
+                         f"{100 * r['cpu_share']:.1f} %", r["peak_rss_mib"], r["rss_growth_mib"],
+                         str(r["node_reported_lost"]), str(r["poses_lost_to_client"]), r["node_callback_ms"]])
+        if len(by_node) == 2:
+            floor, ours = by_node["null"]["latency_ms"], by_node["pose_estimator"]["latency_ms"]
+            notes.append(f"{rate:g} Hz: the estimator adds {ours['median'] - floor['median']:+.3f} ms to the floor's "
+                         f"median latency and {ours['p99'] - floor['p99']:+.3f} ms to its p99")
+    print(table(["rate", "node", "poses/profiles", "delivered", "latency median (ms)", "p99", "max", "p99 taken", "node CPU",
                  "peak RSS (MiB)", "RSS growth (MiB)", "lost before node", "lost after", "callback (ms)"], rows,
                 "pose_estimator under load (separate processes, DDS on this host)"))
+    for note in notes:
+        print(note)
     write_json(out / "node_benchmark.json", {"runs": results})
     print(f"results: {out / 'node_benchmark.json'}")
     return 0

@@ -1,6 +1,7 @@
 """A package node in its own process on a private DDS domain, and a client node in this process."""
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -8,9 +9,10 @@ from . import processes
 
 
 class NodeProcess:
-    """Starts `executable` (falling back to `python -m module`) and a client node to talk to it."""
+    """Starts `executable` (falling back to `python -m module`; None: always the module) and a client node
+    to talk to it."""
 
-    def __init__(self, executable: str, module: str, ros_args: list[str], client_name: str, domain_id: int,
+    def __init__(self, executable: str | None, module: str, ros_args: list[str], client_name: str, domain_id: int,
                  log_path: Path) -> None:
         import rclpy
         from rclpy.context import Context
@@ -18,7 +20,8 @@ class NodeProcess:
 
         self.domain_id = domain_id
         self.log_path = log_path
-        command = processes.executable(executable, module) + ["--ros-args", *ros_args]
+        program = processes.executable(executable, module) if executable else [sys.executable, "-m", module]
+        command = program + ["--ros-args", *ros_args]
         self.process = processes.start(command, domain_id, log_path)
         self.rclpy = rclpy
         self.context = Context()
