@@ -8,7 +8,8 @@ each second (peak and growth), and the profiles it reported lost or rejected in 
 
 Beside each rate's run, the same load goes into a null node first (tools/null_node.py: the estimator's
 way in and out, no estimation), so the table shows what this machine's rclpy, DDS and scheduling cost
-any node, measured in the same minutes as the estimator; `--no-baseline` leaves it out.
+any node, measured in the same minutes as the estimator (`--rounds N` alternates them N times, for a
+machine whose speed drifts); `--no-baseline` leaves it out.
 
 Arrival is timed twice: when DDS delivered the pose into this process (the reader's reception time,
 stamped by DDS's receive thread: the node's latency, what any subscriber could have) and when this
@@ -188,6 +189,27 @@ class LoadRun(NodeProcess):
                 "node_callback_cpu_ms": float(np.median(reported("mean_processing_cpu_ms") or [float("nan")]))}
 
 
+def pooled(parts: list[tuple[dict, list[float], list[float]]]) -> dict:
+    """One node's rounds at one rate as one run: latencies pooled, counts summed, memory at its worst."""
+    results = [result for result, _, _ in parts]
+    sent, received = sum(r["sent"] for r in results), sum(r["received"] for r in results)
+    callbacks = [r["node_callback_ms"] for r in results if not np.isnan(r["node_callback_ms"])]
+    callback_cpu = [r["node_callback_cpu_ms"] for r in results if not np.isnan(r["node_callback_cpu_ms"])]
+    return {"node": results[0]["node"], "rate_hz": results[0]["rate_hz"],
+            "seconds": sum(r["seconds"] for r in results), "sent": sent, "received": received,
+            "delivered": received / max(1, sent),
+            "latency_ms": summary(np.concatenate([lat for _, lat, _ in parts]) * 1e3),
+            "latency_taken_ms": summary(np.concatenate([taken for _, _, taken in parts]) * 1e3),
+            "cpu_share": float(np.mean([r["cpu_share"] for r in results])),
+            "peak_rss_mib": max(r["peak_rss_mib"] for r in results),
+            "rss_growth_mib": max(r["rss_growth_mib"] for r in results),
+            "node_reported_lost": sum(r["node_reported_lost"] for r in results),
+            "poses_lost_to_client": sum(r["poses_lost_to_client"] for r in results),
+            "node_callback_ms": float(np.median(callbacks)) if callbacks else float("nan"),
+            "node_callback_cpu_ms": float(np.median(callback_cpu)) if callback_cpu else float("nan"),
+            "rounds": results}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rates", type=float, nargs="+", default=[83.3, 1000.0])
@@ -196,7 +218,10 @@ def main(argv=None) -> int:
     parser.add_argument("--gauge", default=str(config_path(DEFAULT_GAUGE)))
     parser.add_argument("--out", default="runs")
     parser.add_argument("--no-baseline", dest="baseline", action="store_false",
-                        help="skip the null node run before each rate's estimator run")
+                        help="skip the null node runs beside the estimator's")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="split each rate's time into this many alternating null/estimator runs, pooled "
+                             "(1: one run of the whole time each, which also shows memory over the whole time)")
     parser.add_argument("--param", action="append", default=[], metavar="NAME:=VALUE",
                         help="a pose_estimator parameter (repeatable), e.g. queue_depth:=20")
     parser.add_argument("--publisher", nargs=5, metavar=("DOMAIN", "RATE", "SECONDS", "SEED", "GAUGE"),
@@ -210,26 +235,33 @@ def main(argv=None) -> int:
     out = run_dir(args.out, "node-benchmark")
     results, rows, notes = [], [], []
     nodes = ["null", "pose_estimator"] if args.baseline else ["pose_estimator"]
+    rounds = 1 if args.quick else args.rounds
     for k, rate in enumerate(args.rates):
-        by_node = {}
-        for node in nodes:
-            print(f"{rate:g} Hz for {seconds:g} s, {NODES[node][0]} ...", flush=True)
-            run = LoadRun(gauge, rate, seconds, out, seed=k, node_params=tuple(args.param), node=node)
-            try:
-                r = run.run()
-            finally:
-                run.close()
+        parts: dict[str, list] = {node: [] for node in nodes}
+        for round_index in range(rounds):
+            # Alternate which node goes first, so a slow spell of the machine falls on both alike.
+            for node in (nodes if round_index % 2 == 0 else nodes[::-1]):
+                print(f"{rate:g} Hz, {NODES[node][0]}, round {round_index + 1}/{rounds}: {seconds / rounds:g} s ...",
+                      flush=True)
+                run = LoadRun(gauge, rate, seconds / rounds, out, seed=k, node_params=tuple(args.param), node=node)
+                try:
+                    parts[node].append((run.run(), run.latencies, run.taken_latencies))
+                finally:
+                    run.close()
+        by_node = {node: pooled(parts[node]) for node in nodes}
+        for node, r in by_node.items():
             results.append(r)
-            by_node[node] = r
             lat = r["latency_ms"]
             rows.append([f"{rate:g} Hz", NODES[node][0], f"{r['received']}/{r['sent']}", f"{100 * r['delivered']:.2f} %",
                          lat["median"], lat["p99"], lat["max"], r["latency_taken_ms"]["p99"],
                          f"{100 * r['cpu_share']:.1f} %", r["peak_rss_mib"], r["rss_growth_mib"],
-                         str(r["node_reported_lost"]), str(r["poses_lost_to_client"]), r["node_callback_ms"]])
+                         str(r["node_reported_lost"]), str(r["poses_lost_to_client"]),
+                         "—" if np.isnan(r["node_callback_ms"]) else r["node_callback_ms"]])  # the null node reports none
         if len(by_node) == 2:
             floor, ours = by_node["null"]["latency_ms"], by_node["pose_estimator"]["latency_ms"]
             notes.append(f"{rate:g} Hz: the estimator adds {ours['median'] - floor['median']:+.3f} ms to the floor's "
-                         f"median latency and {ours['p99'] - floor['p99']:+.3f} ms to its p99")
+                         f"median latency and {ours['p99'] - floor['p99']:+.3f} ms to its p99 "
+                         f"({rounds} alternating round{'s' if rounds > 1 else ''} each)")
     print(table(["rate", "node", "poses/profiles", "delivered", "latency median (ms)", "p99", "max", "p99 taken", "node CPU",
                  "peak RSS (MiB)", "RSS growth (MiB)", "lost before node", "lost after", "callback (ms)"], rows,
                 "pose_estimator under load (separate processes, DDS on this host)"))
