@@ -115,10 +115,11 @@ class PdCompensatorNode(Node):
         if len(v["gauge_in_base"]) != 6 or len(v["acceleration_psd"]) != 6:
             raise ValueError("gauge_in_base and acceleration_psd need six values")
         self.mounting = Mounting(tuple(v["gauge_in_base"]))
-        self.filter = AxisKalman(np.array(v["acceleration_psd"]))
-        self.shaper = (InputShaper(zvd_impulses(v["shaper_frequency"], v["shaper_damping"]))
-                       if v["shaper_frequency"] > 0 else None)
         self.modal = modal_controller_from(v)
+        # The PD law's filter and shaper; the modal law has its own filter and needs no shaper.
+        self.filter = AxisKalman(np.array(v["acceleration_psd"])) if self.modal is None else None
+        self.shaper = (InputShaper(zvd_impulses(v["shaper_frequency"], v["shaper_damping"]))
+                       if self.modal is None and v["shaper_frequency"] > 0 else None)
         self.anchor: np.ndarray | None = None  # base-frame rotation all rotation vectors are taken from
         self.reference: np.ndarray | None = None  # 6-vector in base coordinates
         self.last_pose_stamp = 0.0
@@ -238,11 +239,11 @@ class PdCompensatorNode(Node):
         stale_at = self.last_pose_stamp + self.values["max_pose_age"]
         if self.reference is not None and now <= stale_at:
             return stale_at + 1e-4
-        self.filter.reset()  # the next fresh pose starts the filter again, not from old motion
-        if self.modal is not None:
-            self.modal.reset()
-        if self.shaper is not None:
-            self.shaper.reset()  # nor does old shaped motion come back after a stale spell
+        # The next fresh pose starts the filter again, not from old motion; nor does old shaped motion
+        # come back after a stale spell.
+        for state in (self.filter, self.modal, self.shaper):
+            if state is not None:
+                state.reset()
         self._publish(np.zeros(6), self.get_clock().now().nanoseconds)
         self.stale_zeros += 1
         return now + 1.0 / self.values["watchdog_rate"]
