@@ -63,11 +63,12 @@ def test_the_model_settles_where_it_is_commanded() -> None:
 
 def run_loop(law: str, axis: int, target: float, seconds: float = 2.0, lose_every: int = 0,
              kick_at: float | None = None, seed: int = 0, disarmed: tuple[float, float] = (0.0, 0.0),
-             sent: list | None = None, model: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+             sent: list | None = None, model: dict | None = None,
+             poses_per_period: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """sim_cell's controller and arm in one loop: each period the increment asked for at the last pose is
-    applied (rounded to 1 um; lost every lose_every-th period and while `disarmed`), then a pose is measured
-    with noise. `sent` collects (time, increment on the axis); `model` changes the law's design (a model
-    that is off)."""
+    applied (rounded to 1 um; lost every lose_every-th period and while `disarmed`), then poses are measured
+    with noise, `poses_per_period` of them evenly spaced (a profiler on its own faster clock). `sent`
+    collects (time, increment on the axis); `model` changes the law's design (a model that is off)."""
     rng = np.random.default_rng(seed)
     arm = Arm(ArmModel())
     modal = ModalController(design(**(model or {})))
@@ -84,22 +85,27 @@ def run_loop(law: str, axis: int, target: float, seconds: float = 2.0, lose_ever
         commanded += np.round(pending * 1e6) * 1e-6
         if kick_at is not None and abs(t - kick_at) < PERIOD / 2:
             arm.state[axis, 1] += 0.01  # a knock: 10 mm/s
-        truth = arm.position
-        z = truth + rng.normal(0, NOISE)
-        if law == "modal":
-            modal.update(t, z, NOISE ** 2, reference)
-            velocity = modal.limit(np.full(6, 0.05))
-        else:
-            kalman.update(t, z, NOISE ** 2)
-            velocity = shaper(t, pd_velocity(reference - kalman.position, kalman.velocity, gains))
+        for k in range(poses_per_period):
+            truth = arm.position
+            z = truth + rng.normal(0, NOISE)
+            if law == "modal":
+                modal.update(t + k * PERIOD / poses_per_period, z, NOISE ** 2, reference)
+                velocity = modal.limit(np.full(6, 0.05))
+            else:
+                kalman.update(t, z, NOISE ** 2)
+                velocity = shaper(t, pd_velocity(reference - kalman.position, kalman.velocity, gains))
+            if k == 0:
+                times.append(t)
+                positions.append(truth[axis])
+            arm.command = commanded.copy()
+            if poses_per_period == 1:
+                for _ in range(TICKS):
+                    arm.advance(TICK)
+            else:
+                arm.advance(PERIOD / poses_per_period)
         pending = velocity * PERIOD
         if sent is not None:
             sent.append((t, pending[axis]))
-        times.append(t)
-        positions.append(truth[axis])
-        for _ in range(TICKS):
-            arm.command = commanded.copy()
-            arm.advance(TICK)
     return np.array(times), np.array(positions)
 
 
@@ -163,6 +169,32 @@ def test_poses_within_a_period_are_not_used_and_a_long_gap_or_time_going_back_re
     assert modal.position[0] == pytest.approx(5e-3)  # started again where the arm now is
     modal.update(0.0, z + 7e-3, variance, reference)  # the clock went back: not a pose "within a period"
     assert modal.skipped == 1 and modal.position[0] == pytest.approx(7e-3)
+
+
+@pytest.mark.parametrize("period, poses_per_period", [(0.004, 4), (0.004, 2), (0.012, 12), (0.012, 3)])
+def test_a_profiler_faster_than_the_controller_starts_one_period_per_controller_period(
+        period: float, poses_per_period: int) -> None:
+    """Poses at 1 kHz (stamps jittered by 5 % of their spacing) beside a 4 ms or 12 ms controller: the law
+    counts the controller's periods, not the poses' (it used to start a period every half period)."""
+    rng = np.random.default_rng(1)
+    modal = ModalController(design(period_s=period, loop_delay_s=period + ArmModel().delay_s))
+    spacing, seconds = period / poses_per_period, 2.0
+    poses = int(seconds / spacing)
+    for k in range(poses):
+        modal.update(k * spacing + rng.normal(0, 0.05 * spacing), np.zeros(6), np.full(6, 1e-12), np.zeros(6))
+    periods = poses - modal.skipped
+    assert abs(periods - seconds / period) <= 2
+
+
+def test_a_knock_is_damped_as_well_with_four_poses_a_period() -> None:
+    """The knock of the test above with the profiler 4x faster than the controller: as damped as with one
+    pose a period (averaged over four noise draws; the law counting half periods as periods rang ~2x more)."""
+    def mean_ringing(law: str, poses_per_period: int) -> float:
+        return float(np.mean([ringing(*run_loop(law, axis=1, target=0.0, seconds=2.0, kick_at=0.6, seed=seed,
+                                                poses_per_period=poses_per_period)) for seed in range(4)]))
+
+    one, four = mean_ringing("modal", 1), mean_ringing("modal", 4)
+    assert four < 1.3 * one and four < 0.2 * mean_ringing("pd", 1)
 
 
 @pytest.mark.parametrize("change", [dict(frequency_hz=(10.0,) * 5), dict(damping=(1.0,) * 6),

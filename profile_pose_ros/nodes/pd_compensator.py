@@ -53,7 +53,8 @@ PARAMETERS = [
           "+-20 % error on the frequency).", 0.0, 0.9, read_only=True),
     Param("control_law", "pd", "pd: the PD law behind the input shaper (sends nothing at the resonance, adds no "
           "damping); modal: a Kalman filter on a model of the arm's mode and the loop's delays with an LQR "
-          "feedback that damps the mode (docs/robot_side.md). modal needs one pose per control period.",
+          "feedback that damps the mode (docs/robot_side.md). modal: one pose per control period drives it; a "
+          "faster profiler's other poses are not used.",
           read_only=True),
     Param("modal_frequency", [10.0] * 6, "modal: the arm mode's natural frequency per axis (Hz), as the open-loop "
           "step shows it (profile_pose_experiment --modes open).", read_only=True),
@@ -261,7 +262,7 @@ class PdCompensatorNode(Node):
                   "control_law": self.values["control_law"], "kp": list(self.gains.kp), "kd": list(self.gains.kd),
                   **self.latency.report()}
         if self.modal is not None:
-            values["poses_within_a_period"] = self.modal.skipped  # not used: modal wants one pose a period
+            values["poses_within_a_period"] = self.modal.skipped  # not used: one pose a period drives the law
         self.diagnostics_pub.publish(diagnostic_array(self, "compensator", "pd_compensator",
                                                       level, message, values))
 
