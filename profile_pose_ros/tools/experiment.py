@@ -352,12 +352,13 @@ def _save(fig, path) -> str:
 
 def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise: float, out, seed: int = 0,
         compensator: dict | None = None, modes: tuple[str, ...] = ("open", "closed"),
-        refine_model: str = "dense", bag: Path | None = None, gauge_file: str = "", composed: bool = False) -> dict:
+        refine_model: str = "dense", bag: Path | None = None, gauge_file: str = "", composed: bool = False,
+        profile_rate_hz: float | None = None) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_experiment")
     runs: list[dict] = []
     try:
         exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model, bag=bag, gauge_file=gauge_file,
-                         composed=composed)
+                         composed=composed, profile_rate_hz=profile_rate_hz)
         exp.start()
         for mode in modes:
             exp.bridge(arm=(mode == "closed"))
@@ -403,6 +404,9 @@ def loop_health(exp: Experiment) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rate", type=float, default=83.333, help="control rate: 83.333 (12 ms) or 250 (4 ms)")
+    parser.add_argument("--profile-rate", type=float, default=None,
+                        help="a profiler on its own clock at this rate (Hz, e.g. 1000) instead of one profile per "
+                             "control period triggered by the robot (the paper's cell)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--sizes", type=float, nargs="+", default=[1.0, 2.0], help="step sizes (mm)")
     parser.add_argument("--axes", nargs="+", default=list(AXES), choices=list(AXES))
@@ -429,13 +433,14 @@ def main(argv=None) -> int:
     bag = None if args.no_bag else out / "bag"
     compensator = {k: list(v) for k, v in (("kp", args.kp), ("kd", args.kd), ("acceleration_psd", args.psd)) if v}
     compensator["control_law"] = args.control_law
-    print(f"Table IV protocol at {args.rate:g} Hz: {len(args.axes)} axes x {len(args.sizes)} sizes x "
+    profiles = f", profiles at {args.profile_rate:g} Hz" if args.profile_rate else ""
+    print(f"Table IV protocol at {args.rate:g} Hz{profiles}: {len(args.axes)} axes x {len(args.sizes)} sizes x "
           f"{args.repeats} repeats, open and closed loop ({args.control_law} law); gauge {args.gauge or 'config/gauge_paper_n5.yaml'}, "
           f"{args.refine_model} refinement, {args.noise * 1e6:g} um profile noise; logs in {out / 'logs'}",
           flush=True)
     result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=compensator,
                  modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge,
-                 composed=args.composed)
+                 composed=args.composed, profile_rate_hz=args.profile_rate)
     if len(args.modes) < 2:  # nothing to compare: the runs only
         write_json(out / "experiment.json", result)
         print(f"results: {out / 'experiment.json'}")
