@@ -52,6 +52,15 @@ def test_quick_node_benchmark_runs_both_rates(tmp_path):
         assert r["latency_ms"]["median"] > 0 and r["peak_rss_mib"] > 0 and r["cpu_share"] > 0
 
 
+def test_the_null_node_queues_as_many_profiles_as_the_estimator():
+    """The floor is only a floor if the null node takes profiles as the estimator does."""
+    from profile_pose_ros.nodes.pose_estimator import PARAMETERS
+    from profile_pose_ros.tools.null_node import QUEUE_DEPTH
+
+    (queue_depth,) = [p.default for p in PARAMETERS if p.name == "queue_depth"]
+    assert QUEUE_DEPTH == queue_depth
+
+
 def test_quick_study_runs_end_to_end(tmp_path):
     stdout, data = run_quick("profile_pose_study", "study.json", tmp_path)
     assert "TABLE I" in stdout and "Fig. 3" in stdout

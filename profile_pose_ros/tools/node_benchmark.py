@@ -177,7 +177,8 @@ class LoadRun(NodeProcess):
         lost = int(max(reported("profiles_lost"), default=0))
         callback_ms = reported("mean_processing_ms")
         rss = [s["VmRSS"] / 1024 for s in self.samples]
-        return {"node": self.node_kind, "rate_hz": self.rate_hz, "seconds": self.seconds, "sent": self.sent, "received": len(self.latencies),
+        return {"node": self.node_kind, "rate_hz": self.rate_hz, "seconds": self.seconds, "sent": self.sent,
+                "received": len(self.latencies),
                 "delivered": len(self.latencies) / max(1, self.sent),
                 "latency_ms": summary(np.array(self.latencies) * 1e3),
                 "latency_taken_ms": summary(np.array(self.taken_latencies) * 1e3),
@@ -252,19 +253,20 @@ def main(argv=None) -> int:
         for node, r in by_node.items():
             results.append(r)
             lat = r["latency_ms"]
-            rows.append([f"{rate:g} Hz", NODES[node][0], f"{r['received']}/{r['sent']}", f"{100 * r['delivered']:.2f} %",
-                         lat["median"], lat["p99"], lat["max"], r["latency_taken_ms"]["p99"],
-                         f"{100 * r['cpu_share']:.1f} %", r["peak_rss_mib"], r["rss_growth_mib"],
-                         str(r["node_reported_lost"]), str(r["poses_lost_to_client"]),
-                         "—" if np.isnan(r["node_callback_ms"]) else r["node_callback_ms"]])  # the null node reports none
+            rows.append([f"{rate:g} Hz", NODES[node][0], f"{r['received']}/{r['sent']}",
+                         f"{100 * r['delivered']:.2f} %", lat["median"], lat["p99"], lat["max"],
+                         r["latency_taken_ms"]["p99"], f"{100 * r['cpu_share']:.1f} %", r["peak_rss_mib"],
+                         r["rss_growth_mib"], str(r["node_reported_lost"]), str(r["poses_lost_to_client"]),
+                         # the null node reports no callback time
+                         "—" if np.isnan(r["node_callback_ms"]) else r["node_callback_ms"]])
         if len(by_node) == 2:
             floor, ours = by_node["null"]["latency_ms"], by_node["pose_estimator"]["latency_ms"]
             notes.append(f"{rate:g} Hz: the estimator adds {ours['median'] - floor['median']:+.3f} ms to the floor's "
                          f"median latency and {ours['p99'] - floor['p99']:+.3f} ms to its p99 "
                          f"({rounds} alternating round{'s' if rounds > 1 else ''} each)")
-    print(table(["rate", "node", "poses/profiles", "delivered", "latency median (ms)", "p99", "max", "p99 taken", "node CPU",
-                 "peak RSS (MiB)", "RSS growth (MiB)", "lost before node", "lost after", "callback (ms)"], rows,
-                "pose_estimator under load (separate processes, DDS on this host)"))
+    print(table(["rate", "node", "poses/profiles", "delivered", "latency median (ms)", "p99", "max", "p99 taken",
+                 "node CPU", "peak RSS (MiB)", "RSS growth (MiB)", "lost before node", "lost after", "callback (ms)"],
+                rows, "pose_estimator under load (separate processes, DDS on this host)"))
     for note in notes:
         print(note)
     write_json(out / "node_benchmark.json", {"runs": results})
