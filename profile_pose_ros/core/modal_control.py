@@ -29,9 +29,9 @@ a period after the last started a new period, so at 1 kHz the filter ran two per
 controller's. (Measuring the others into the state was tried offline on sim_cell's arm, to first order
 and with the model's exact propagation over part of a period: the exact way halved the state's position
 error, 10.8 -> 5.0 um at 4 ms, but the arm holding still moved no less, 4.4 -> 4.8 um, and more at 12 ms,
-4.1 -> 7.6 um: the extra poses lean on the model's motion within a period, and the model's y damping
-(0.13, Table IV's at 1 mm) is not the arm's at a few um (0.011). Not kept.) A gap of more than MAX_GAP
-periods, or time going backwards, restarts.
+4.1 -> 7.6 um; the same with an arm exactly as modelled (3.2 -> 6.6 um at 12 ms), so not from a model
+that is off. Why was not found; not kept.) A gap of more than MAX_GAP periods, or time going backwards,
+restarts.
 """
 from __future__ import annotations
 
