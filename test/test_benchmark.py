@@ -48,6 +48,8 @@ def test_quick_node_benchmark_runs_both_rates(tmp_path):
                                                           (1000.0, "null"), (1000.0, "pose_estimator")]
     assert "the estimator adds" in stdout
     for r in runs:
+        own = r["node_window_p99_ms"]  # the estimator's diagnostics; the null node has none
+        assert (own == []) if r["node"] == "null" else all(p99 > 0 for p99 in own)
         assert r["sent"] > 0 and 0 < r["received"] <= r["sent"]
         assert r["latency_ms"]["median"] > 0 and r["peak_rss_mib"] > 0 and r["cpu_share"] > 0
 

@@ -9,7 +9,9 @@ each second (peak and growth), and the profiles it reported lost or rejected in 
 Beside each rate's run, the same load goes into a null node first (tools/null_node.py: the estimator's
 way in and out, no estimation), so the table shows what this machine's rclpy, DDS and scheduling cost
 any node, measured in the same minutes as the estimator (`--rounds N` alternates them N times, for a
-machine whose speed drifts); `--no-baseline` leaves it out.
+machine whose speed drifts); `--no-baseline` leaves it out. The last column is the estimator's own
+stamp-to-publish p99 per diagnostics window (quietest / median / worst): what the node gives in the
+machine's quiet seconds and in its worst, without the DDS hops on either side.
 
 Arrival is timed twice: when DDS delivered the pose into this process (the reader's reception time,
 stamped by DDS's receive thread: the node's latency, what any subscriber could have) and when this
@@ -174,6 +176,14 @@ class LoadRun(NodeProcess):
         def reported(key: str) -> list[float]:
             return [float(kv.value) for a in self.diagnostics for s in a.status for kv in s.values if kv.key == key]
 
+        # The node's own stamp -> publish p99 per diagnostics window (pose_estimator's trigger_to_pose), over
+        # the windows that saw at least half the usual count (not the run's first and last): what the node
+        # gives in the machine's quiet seconds and in its worst.
+        windows = [{kv.key: kv.value for kv in s.values} for a in self.diagnostics for s in a.status]
+        windows = [(float(w["trigger_to_pose_ms_n"]), float(w["trigger_to_pose_ms_p99"]))
+                   for w in windows if "trigger_to_pose_ms_p99" in w]
+        usual = float(np.median([n for n, _ in windows])) if windows else 0.0
+        own_p99 = [p99 for n, p99 in windows if n >= 0.5 * usual]
         lost = int(max(reported("profiles_lost"), default=0))
         callback_ms = reported("mean_processing_ms")
         rss = [s["VmRSS"] / 1024 for s in self.samples]
@@ -187,7 +197,8 @@ class LoadRun(NodeProcess):
                 "rss_per_second_mib": rss, "node_reported_lost": lost,
                 "poses_lost_to_client": self.pose_gaps.missed,
                 "node_callback_ms": float(np.median(callback_ms)) if callback_ms else float("nan"),
-                "node_callback_cpu_ms": float(np.median(reported("mean_processing_cpu_ms") or [float("nan")]))}
+                "node_callback_cpu_ms": float(np.median(reported("mean_processing_cpu_ms") or [float("nan")])),
+                "node_window_p99_ms": own_p99}
 
 
 def pooled(parts: list[tuple[dict, list[float], list[float]]]) -> dict:
@@ -208,7 +219,15 @@ def pooled(parts: list[tuple[dict, list[float], list[float]]]) -> dict:
             "poses_lost_to_client": sum(r["poses_lost_to_client"] for r in results),
             "node_callback_ms": float(np.median(callbacks)) if callbacks else float("nan"),
             "node_callback_cpu_ms": float(np.median(callback_cpu)) if callback_cpu else float("nan"),
+            "node_window_p99_ms": [p99 for r in results for p99 in r["node_window_p99_ms"]],
             "rounds": results}
+
+
+def window_p99s(values: list[float]) -> str:
+    """quietest / median / worst of the node's per-window p99s, or a dash (the null node reports none)."""
+    if not values:
+        return "—"
+    return f"{min(values):.2f} / {float(np.median(values)):.2f} / {max(values):.2f}"
 
 
 def main(argv=None) -> int:
@@ -258,15 +277,16 @@ def main(argv=None) -> int:
                          r["latency_taken_ms"]["p99"], f"{100 * r['cpu_share']:.1f} %", r["peak_rss_mib"],
                          r["rss_growth_mib"], str(r["node_reported_lost"]), str(r["poses_lost_to_client"]),
                          # the null node reports no callback time
-                         "—" if np.isnan(r["node_callback_ms"]) else r["node_callback_ms"]])
+                         "—" if np.isnan(r["node_callback_ms"]) else r["node_callback_ms"],
+                         window_p99s(r["node_window_p99_ms"])])
         if len(by_node) == 2:
             floor, ours = by_node["null"]["latency_ms"], by_node["pose_estimator"]["latency_ms"]
             notes.append(f"{rate:g} Hz: the estimator adds {ours['median'] - floor['median']:+.3f} ms to the floor's "
                          f"median latency and {ours['p99'] - floor['p99']:+.3f} ms to its p99 "
                          f"({rounds} alternating round{'s' if rounds > 1 else ''} each)")
     print(table(["rate", "node", "poses/profiles", "delivered", "latency median (ms)", "p99", "max", "p99 taken",
-                 "node CPU", "peak RSS (MiB)", "RSS growth (MiB)", "lost before node", "lost after", "callback (ms)"],
-                rows, "pose_estimator under load (separate processes, DDS on this host)"))
+                 "node CPU", "peak RSS (MiB)", "RSS growth (MiB)", "lost before node", "lost after", "callback (ms)",
+                 "own p99 per window (ms)"], rows, "pose_estimator under load (separate processes, DDS on this host)"))
     for note in notes:
         print(note)
     write_json(out / "node_benchmark.json", {"runs": results})
