@@ -166,7 +166,7 @@ class ModalController:
         T = self.design.period_s
         if self.time is not None:
             gap = (time - self.time) / T
-            if gap < 0 or gap > MAX_GAP + 0.5 or time < self.last_stamp:
+            if time < self.last_stamp or gap > MAX_GAP + 0.5:  # (last_stamp is never before self.time)
                 self.reset()  # time went backwards (a replayed bag, a restarted clock) or a long gap
             else:
                 self.intervals.append(min(time - self.last_stamp, T))

@@ -173,19 +173,20 @@ class LoadRun(NodeProcess):
         wall = time.monotonic() - wall_start
         self.samples.append({"t": wall, **processes.memory_kib(pid)})
         self.spin_until(lambda: False, 1.2)  # one more diagnostics period
-        def reported(key: str) -> list[float]:
-            return [float(kv.value) for a in self.diagnostics for s in a.status for kv in s.values if kv.key == key]
-
-        # The node's own stamp -> publish p99 per diagnostics window (pose_estimator's trigger_to_pose), over
-        # the windows that saw at least half the usual count (not the run's first and last): what the node
-        # gives in the machine's quiet seconds and in its worst.
+        # one dict per diagnostics window of the node (the null node publishes none)
         windows = [{kv.key: kv.value for kv in s.values} for a in self.diagnostics for s in a.status]
-        windows = [(float(w["trigger_to_pose_ms_n"]), float(w["trigger_to_pose_ms_p99"]))
+
+        def reported(key: str) -> list[float]:
+            return [float(w[key]) for w in windows if key in w]
+
+        # The node's own stamp -> publish p99 per window (pose_estimator's trigger_to_pose), over the windows
+        # that saw at least half the usual count (not the run's first and last): what the node gives in the
+        # machine's quiet seconds and in its worst.
+        counted = [(float(w["trigger_to_pose_ms_n"]), float(w["trigger_to_pose_ms_p99"]))
                    for w in windows if "trigger_to_pose_ms_p99" in w]
-        usual = float(np.median([n for n, _ in windows])) if windows else 0.0
-        own_p99 = [p99 for n, p99 in windows if n >= 0.5 * usual]
+        usual = median_or_nan([n for n, _ in counted])
+        own_p99 = [p99 for n, p99 in counted if n >= 0.5 * usual]
         lost = int(max(reported("profiles_lost"), default=0))
-        callback_ms = reported("mean_processing_ms")
         rss = [s["VmRSS"] / 1024 for s in self.samples]
         return {"node": self.node_kind, "rate_hz": self.rate_hz, "seconds": self.seconds, "sent": self.sent,
                 "received": len(self.latencies),
@@ -196,17 +197,21 @@ class LoadRun(NodeProcess):
                 "rss_first_mib": rss[0], "rss_last_mib": rss[-1], "rss_growth_mib": rss[-1] - rss[0],
                 "rss_per_second_mib": rss, "node_reported_lost": lost,
                 "poses_lost_to_client": self.pose_gaps.missed,
-                "node_callback_ms": float(np.median(callback_ms)) if callback_ms else float("nan"),
-                "node_callback_cpu_ms": float(np.median(reported("mean_processing_cpu_ms") or [float("nan")])),
+                "node_callback_ms": median_or_nan(reported("mean_processing_ms")),
+                "node_callback_cpu_ms": median_or_nan(reported("mean_processing_cpu_ms")),
                 "node_window_p99_ms": own_p99}
+
+
+def median_or_nan(values: list[float]) -> float:
+    """The median of what was reported (NaNs left out), NaN if nothing was."""
+    values = [v for v in values if not np.isnan(v)]
+    return float(np.median(values)) if values else float("nan")
 
 
 def pooled(parts: list[tuple[dict, list[float], list[float]]]) -> dict:
     """One node's rounds at one rate as one run: latencies pooled, counts summed, memory at its worst."""
     results = [result for result, _, _ in parts]
     sent, received = sum(r["sent"] for r in results), sum(r["received"] for r in results)
-    callbacks = [r["node_callback_ms"] for r in results if not np.isnan(r["node_callback_ms"])]
-    callback_cpu = [r["node_callback_cpu_ms"] for r in results if not np.isnan(r["node_callback_cpu_ms"])]
     return {"node": results[0]["node"], "rate_hz": results[0]["rate_hz"],
             "seconds": sum(r["seconds"] for r in results), "sent": sent, "received": received,
             "delivered": received / max(1, sent),
@@ -217,8 +222,8 @@ def pooled(parts: list[tuple[dict, list[float], list[float]]]) -> dict:
             "rss_growth_mib": max(r["rss_growth_mib"] for r in results),
             "node_reported_lost": sum(r["node_reported_lost"] for r in results),
             "poses_lost_to_client": sum(r["poses_lost_to_client"] for r in results),
-            "node_callback_ms": float(np.median(callbacks)) if callbacks else float("nan"),
-            "node_callback_cpu_ms": float(np.median(callback_cpu)) if callback_cpu else float("nan"),
+            "node_callback_ms": median_or_nan([r["node_callback_ms"] for r in results]),
+            "node_callback_cpu_ms": median_or_nan([r["node_callback_cpu_ms"] for r in results]),
             "node_window_p99_ms": [p99 for r in results for p99 in r["node_window_p99_ms"]],
             "rounds": results}
 
