@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from profile_pose_ros.tools.experiment import METRICS, REACHED, damping_from_overshoot, step_metrics
+from profile_pose_ros.tools.experiment import (METRICS, REACHED, STEP_ATTEMPTS, damping_from_overshoot, recorded_step,
+                                               step_metrics)
 
 
 def second_order_step(zeta: float, size: float = 1e-3, rate: float = 83.333,
@@ -59,6 +60,29 @@ def test_a_response_that_never_rises_has_metrics_not_an_error() -> None:
 def test_no_overshoot_is_critically_damped_or_more() -> None:
     assert damping_from_overshoot(0.0) == 1.0
     assert damping_from_overshoot(65.88) == pytest.approx(0.132, abs=0.002)  # Table IV's y, open loop
+
+
+class _StepsSpoiledAtFirst:
+    """Stands in for Experiment.step: the first `spoiled` steps' records are spoiled, the rest are not."""
+
+    def __init__(self, spoiled: int) -> None:
+        self.spoiled, self.steps = spoiled, 0
+
+    def step(self, closed: bool, direction: np.ndarray, size: float) -> dict:
+        self.steps += 1
+        ok = self.steps > self.spoiled
+        return {"spoiled": [] if ok else ["estimate: the stream stalled"],
+                "estimate": {"Mp": 10.0 if ok else float("nan")}}
+
+
+@pytest.mark.parametrize("spoiled", [0, 1, STEP_ATTEMPTS - 1, STEP_ATTEMPTS, STEP_ATTEMPTS + 2])
+def test_a_spoiled_step_is_done_again_and_a_step_never_recorded_says_so(spoiled: int, capsys) -> None:
+    exp = _StepsSpoiledAtFirst(spoiled)
+    result = recorded_step(exp, True, np.array([0.0, 0.0, 1.0]), 1e-3)
+    assert result["attempts"] == exp.steps == min(spoiled + 1, STEP_ATTEMPTS)
+    recorded = spoiled < STEP_ATTEMPTS
+    assert bool(result["spoiled"]) != recorded and np.isnan(result["estimate"]["Mp"]) != recorded
+    assert ("its metrics are left out" in capsys.readouterr().out) != recorded
 
 
 def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
