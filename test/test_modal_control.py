@@ -171,11 +171,13 @@ def test_poses_within_a_period_are_not_used_and_a_long_gap_or_time_going_back_re
     assert modal.skipped == 1 and modal.position[0] == pytest.approx(7e-3)
 
 
-@pytest.mark.parametrize("period, poses_per_period", [(0.004, 4), (0.004, 2), (0.012, 12), (0.012, 3)])
+@pytest.mark.parametrize("period, poses_per_period", [(0.004, 4), (0.004, 2), (0.012, 12), (0.012, 3), (0.012, 1.0),
+                                                      (0.012, 1.2), (0.004, 1.25), (0.004, 1.5), (0.004, 2.5)])
 def test_a_profiler_faster_than_the_controller_starts_one_period_per_controller_period(
-        period: float, poses_per_period: int) -> None:
-    """Poses at 1 kHz (stamps jittered by 5 % of their spacing) beside a 4 ms or 12 ms controller: the law
-    counts the controller's periods, not the poses' (it used to start a period every half period)."""
+        period: float, poses_per_period: float) -> None:
+    """Poses at 1 kHz, or 100 Hz beside the 83.3 Hz controller, and so on (stamps jittered by 5 % of their
+    spacing) beside a 4 ms or 12 ms controller: the law counts the controller's periods, not the poses'. It
+    used to start a period every half period at 2 poses a period and more, and with every pose below 1.5."""
     rng = np.random.default_rng(1)
     modal = ModalController(design(period_s=period, loop_delay_s=period + ArmModel().delay_s))
     spacing, seconds = period / poses_per_period, 2.0

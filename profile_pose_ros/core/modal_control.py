@@ -24,7 +24,9 @@ smoothly; it starts from where the arm is estimated to be, so a new reference is
 One pose per control period drives the law: the first pose at least a period after the one that started
 the previous period, less half the poses' spacing (the median of the last SPACING_WINDOW intervals). A
 cell that triggers the profiler each period has one pose a period; a profiler on its own faster clock
-(1 kHz beside a 4 ms controller) has several, and the others are not used. Until 2026-12-02 a pose half
+(1 kHz beside a 4 ms controller) has several, and the others are not used; its periods then follow a
+grid at exactly T (its stamps say nothing of the controller's phase), else a profiler 1-1.5x faster than
+the controller started a period with every pose. Until 2026-12-02 a pose half
 a period after the last started a new period, so at 1 kHz the filter ran two periods for every one of the
 controller's. (Measuring the others into the state was tried offline on sim_cell's arm, to first order
 and with the model's exact propagation over part of a period: the exact way halved the state's position
@@ -44,6 +46,7 @@ from scipy.linalg import expm, solve_discrete_are
 
 MAX_GAP = 4  # periods without a pose after which the filter starts again
 SPACING_WINDOW = 15  # recent intervals between poses whose median is the poses' spacing
+ONE_POSE_A_PERIOD = 0.98  # poses this close to a period apart (median): one a period, triggered by the controller
 
 
 @dataclass(frozen=True)
@@ -148,7 +151,7 @@ class ModalController:
 
     def reset(self) -> None:
         """Forget everything: the next pose starts the filter (after a stale spell, a restart)."""
-        self.time: float | None = None  # the stamp of the pose that started the current period
+        self.time: float | None = None  # when the current period started (a pose's stamp, or on the grid)
         self.last_stamp: float | None = None  # of any pose
         self.intervals: deque[float] = deque(maxlen=SPACING_WINDOW)
         self.x = np.zeros((6, self.n + 1))
@@ -166,7 +169,7 @@ class ModalController:
         T = self.design.period_s
         if self.time is not None:
             gap = (time - self.time) / T
-            if time < self.last_stamp or gap > MAX_GAP + 0.5:  # (last_stamp is never before self.time)
+            if time < self.last_stamp or gap > MAX_GAP + 0.5:
                 self.reset()  # time went backwards (a replayed bag, a restarted clock) or a long gap
             else:
                 self.intervals.append(min(time - self.last_stamp, T))
@@ -178,11 +181,18 @@ class ModalController:
             self.last_stamp = time
             self._start(time, z, variance)
         else:
-            # whole periods: stamp jitter is not the arm's time (and the stamps, not a grid, stay in step
-            # with the controller's clock)
-            for _ in range(max(1, int(round((time - self.time) / T)))):
+            # whole periods: stamp jitter is not the arm's time
+            periods = max(1, int(round((time - self.time) / T)))
+            for _ in range(periods):
                 self._predict()  # the periods after the first had no fresh increment from us
-            self.time = time
+            # One pose a period (the controller triggers the profiler): its stamp is the controller's tick, and
+            # the period starts there. A profiler on its own clock: its stamps say nothing of the controller's
+            # phase, and the periods go on at exactly T. (Taking the stamp there let a profiler 1-1.5x faster
+            # than the controller start a period with every pose, each up to half a spacing early: the model
+            # ran up to 1.5x fast. Pulling a grid towards such stamps drifts it, as the stamps that start a
+            # period are chosen by where the grid is.)
+            one_a_period = median(self.intervals) >= ONE_POSE_A_PERIOD * T
+            self.time = time if one_a_period else self.time + periods * T
             self._measure(z, variance)
         if reference is None:
             self.velocity, self.pending = np.zeros(6), np.zeros(6)
