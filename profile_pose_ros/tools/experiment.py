@@ -19,7 +19,7 @@ import numpy as np
 
 from ..nodes.messages import pose_stamped, rotation_translation, stamp_ns
 from ..bags import bag_info
-from .config_files import CELL_CONTROL_LAW
+from .config_files import add_control_law_option
 from .graph import Graph, free_port
 from .report import run_dir, table, write_json
 
@@ -431,9 +431,7 @@ def main(argv=None) -> int:
     parser.add_argument("--kp", type=float, nargs=6, help="pd_compensator kp (else its parameter file's)")
     parser.add_argument("--kd", type=float, nargs=6, help="pd_compensator kd")
     parser.add_argument("--psd", type=float, nargs=6, help="pd_compensator acceleration_psd (Kalman process noise)")
-    parser.add_argument("--control-law", default=CELL_CONTROL_LAW, choices=["pd", "modal"],
-                        help="pd_compensator control_law (default: config/cell.yaml's): modal damps the arm's "
-                             "mode, pd only keeps its own commands away from it")
+    add_control_law_option(parser, ": modal damps the arm's mode, pd only keeps its own commands away from it")
     parser.add_argument("--modes", nargs="+", default=["open", "closed"], choices=["open", "closed"])
     parser.add_argument("--refine-model", default="dense", choices=["corners", "dense"],
                         help="pose_estimator's refinement: dense fits every point (~1.6x less noise along the "

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..nodes.messages import stamp_ns, twist_vector
 from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
-from .config_files import CELL_CONTROL_LAW
+from .config_files import CELL_CONTROL_LAW, add_control_law_option
 from .experiment import Experiment
 from .graph import Graph
 from .report import nearest_stamp, run_dir, table, write_json
@@ -278,8 +278,7 @@ def main(argv=None) -> int:
     parser.add_argument("--rate", type=float, default=83.333, help="control rate: 83.333 (12 ms) or 250 (4 ms)")
     parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
     parser.add_argument("--only", nargs="+", help="only the faults whose names contain one of these words")
-    parser.add_argument("--control-law", default=CELL_CONTROL_LAW, choices=["pd", "modal"],
-                        help="pd_compensator's (default: config/cell.yaml's)")
+    add_control_law_option(parser)
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "faults")

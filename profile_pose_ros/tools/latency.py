@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 
 from ..core.latency_window import pooled
+from .config_files import CELL_CONTROL_LAW, add_control_law_option
 from .experiment import Experiment
 from .graph import Graph, cpu_percent
 from .report import run_dir, summary, table, write_json
@@ -72,7 +73,7 @@ class NodeReports:
 
 
 def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float, skip: tuple[str, ...] = (),
-            observer: str = "nodes", composed: bool = False) -> dict:
+            observer: str = "nodes", composed: bool = False, control_law: str = CELL_CONTROL_LAW) -> dict:
     from rclpy.qos import qos_profile_sensor_data
 
     control_hz = 83.333 if rate_hz < 200 else 250.0
@@ -82,7 +83,8 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
     reports = NodeReports(graph)
     try:
         exp = Experiment(graph, control_hz, noise, refine_model=refine_model,
-                         profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None, composed=composed)
+                         profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None, composed=composed,
+                         compensator={"control_law": control_law})
         for name, topic, msgtype in STAGES:
             if name in skip or observer != "dds":
                 continue
@@ -110,6 +112,7 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
     stages = ({name: summary(v) for name, v in latencies.items()} if observer == "dds"
               else reports.summaries())
     return {"rate_hz": rate_hz, "control_hz": control_hz, "seconds": seconds, "refine_model": refine_model,
+            "control_law": control_law,
             "observer": observer, "composed": composed, "stages_ms": stages, "cpu_percent": cpu_share,
             "diagnostics": diagnostics}
 
@@ -145,14 +148,15 @@ def main(argv=None) -> int:
     parser.add_argument("--skip", nargs="*", default=[], help="stages not to subscribe to (dds observer)")
     parser.add_argument("--composed", action="store_true",
                         help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
+    add_control_law_option(parser)
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "latency")
     results = []
     for rate in args.rates:
-        print(f"measuring at {rate:g} Hz for {args.seconds:g} s (logs in {out})", flush=True)
+        print(f"measuring at {rate:g} Hz for {args.seconds:g} s, {args.control_law} law (logs in {out})", flush=True)
         results.append(measure(rate, args.seconds, out, args.refine_model, args.noise, tuple(args.skip),
-                               args.observer, args.composed))
+                               args.observer, args.composed, args.control_law))
     print_table(results)
     write_json(out / "latency.json", {"results": results})
     print(f"results: {out / 'latency.json'}")

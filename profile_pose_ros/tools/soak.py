@@ -5,7 +5,9 @@ the worst diagnostics window's), resident memory and CPU share of every process,
 status that was not OK. Once the loop is closed this client takes nothing at the loop's rate (only
 diagnostics), so the graph has the machine to itself.
 
-The reference steps 0.5 mm back and forth every 10 s so the loop works all along. Verdict: no process
+The reference steps 0.5 mm back and forth every 10 s so the loop works all along, under config/cell.yaml's
+control law unless --control-law says otherwise (the modal law takes every pose but drives itself with one
+a controller period; the report says how many did). Verdict: no process
 died, >= 99.9 % of the triggered profiles became poses the compensator used, and no process grew by more
 than 5 MB of resident memory from the end of the first interval (warm-up: JIT, DDS discovery) to the end.
 The totals are exact: the trigger clock is paused before and after the run until every node has reported
@@ -22,6 +24,7 @@ from typing import Callable
 
 import numpy as np
 
+from .config_files import CELL_CONTROL_LAW, add_control_law_option
 from .experiment import Experiment
 from .graph import Graph, cpu_percent
 from .latency import NodeReports
@@ -37,7 +40,7 @@ LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 
 class Soak:
     def __init__(self, graph: Graph, profile_rate_hz: float, refine_model: str, realtime_priority: int = 0,
-                 composed: bool = False) -> None:
+                 composed: bool = False, control_law: str = CELL_CONTROL_LAW) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
 
         control_hz = 83.333 if profile_rate_hz < 200 else 250.0
@@ -48,7 +51,7 @@ class Soak:
         self.exp = Experiment(graph, control_hz, 5e-6, refine_model=refine_model,
                               profile_rate_hz=profile_rate_hz,  # sim_cell's own clock, which the soak can pause
                               estimator={"max_profile_age": 0.05}, realtime_priority=realtime_priority,
-                              composed=composed)
+                              composed=composed, compensator={"control_law": control_law})
         self.latency = NodeReports(graph)
         self.not_ok: dict[tuple[str, str, str], list] = {}  # (status, level, kind) -> [count, first, last, example]
         self._started = time.time()
@@ -69,7 +72,9 @@ class Soak:
         return {"triggered": int(g.diagnostic("sim_cell", "triggers", "0") or 0),
                 "profiles": int(g.diagnostic("profiler_driver", "profiles_published", "0") or 0),
                 "poses": int(g.diagnostic("pose_estimator", "poses_published", "0") or 0),
-                "compensator_poses": int(g.diagnostic("pd_compensator", "poses", "0") or 0)}
+                "compensator_poses": int(g.diagnostic("pd_compensator", "poses", "0") or 0),
+                # the modal law's: taken, but another pose of the same controller period drove the law
+                "within_a_period": int(g.diagnostic("pd_compensator", "poses_within_a_period", "0") or 0)}
 
     def memory_mb(self) -> dict[str, float]:
         out = {}
@@ -154,17 +159,18 @@ def verdict(result: dict) -> dict:
                 totals["profiles"] - totals["poses"],
             "compensator (pose stale on arrival or dropped)": totals["poses"] - totals["compensator_poses"]}
     return {"crashes": result["crashes"], "triggered": triggered, "poses_used": used, "delivered": delivered,
+            "poses_driving_the_law": used - totals["within_a_period"],
             "achieved_rate_hz": triggered / (result["minutes"] * 60.0), "lost": lost,
             "rss_growth_mb": growth, "ok": (not result["crashes"] and delivered >= DELIVERED_MIN
                                             and all(g <= RSS_GROWTH_MAX_MB for g in growth.values()))}
 
 
 def run_soak(minutes: float, rate_hz: float, interval_s: float, refine_model: str, out,
-             realtime_priority: int = 0, composed: bool = False) -> dict:
+             realtime_priority: int = 0, composed: bool = False, control_law: str = CELL_CONTROL_LAW) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_soak")
     crashes: list[str] = []
     try:
-        s = Soak(graph, rate_hz, refine_model, realtime_priority, composed)
+        s = Soak(graph, rate_hz, refine_model, realtime_priority, composed, control_law)
         try:
             result = s.run(minutes * 60.0, interval_s)
         except RuntimeError as exc:  # Graph.spin_until: a node process died
@@ -173,7 +179,7 @@ def run_soak(minutes: float, rate_hz: float, interval_s: float, refine_model: st
     finally:
         graph.close()
     result.update({"minutes": minutes, "rate_hz": rate_hz, "realtime_priority": realtime_priority,
-                   "composed": composed, "crashes": crashes})
+                   "composed": composed, "control_law": control_law, "crashes": crashes})
     result["verdict"] = verdict(result) if result["intervals"] else {"ok": False, "crashes": crashes}
     return result
 
@@ -209,6 +215,9 @@ def print_report(result: dict) -> None:
     if "lost" in v:
         print(f"trigger rate achieved: {v['achieved_rate_hz']:.0f} Hz of {result['rate_hz']:g} asked (the simulator "
               f"shares the machine); poses lost by stage: " + ", ".join(f"{k} {n}" for k, n in v["lost"].items()))
+    if v.get("poses_driving_the_law", 0) < v.get("poses_used", 0):
+        print(f"of the poses used, {v['poses_driving_the_law']} drove the {result['control_law']} law, one a controller "
+              "period; the others were taken and left out by design (docs/robot_side.md)")
     for crash in v["crashes"]:
         print(f"crash: {crash}")
 
@@ -224,12 +233,14 @@ def main(argv=None) -> int:
                         "nodes (the simulator stays under the normal scheduler); 0: off")
     parser.add_argument("--composed", action="store_true",
                         help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
+    add_control_law_option(parser)
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "soak")
-    print(f"soak: the closed loop for {args.minutes:g} min at {args.rate:g} Hz (logs in {out / 'logs'})", flush=True)
+    print(f"soak: the closed loop for {args.minutes:g} min at {args.rate:g} Hz, {args.control_law} law (logs in "
+          f"{out / 'logs'})", flush=True)
     result = run_soak(args.minutes, args.rate, args.interval, args.refine_model, out, args.realtime_priority,
-                      args.composed)
+                      args.composed, args.control_law)
     print_report(result)
     write_json(out / "soak.json", result)
     print(f"results: {out / 'soak.json'}")
