@@ -26,6 +26,8 @@ def add_control_law_option(parser, help_text: str = "") -> None:
     """--control-law for the tools that start pd_compensator: config/cell.yaml's law unless told."""
     parser.add_argument("--control-law", default=CELL_CONTROL_LAW, choices=["pd", "modal"],
                         help="pd_compensator's control_law (default: config/cell.yaml's)" + help_text)
+
+
 SIM_CELL = {
     "profiler_driver": {"serial_url": "socket://127.0.0.1:24693"},
     "pose_estimator": {"refine_model": "dense", "max_profile_age": 0.05},
