@@ -6,11 +6,12 @@ status that was not OK. Once the loop is closed this client takes nothing at the
 diagnostics), so the graph has the machine to itself.
 
 The reference steps 0.5 mm back and forth every 10 s so the loop works all along, under config/cell.yaml's
-control law unless --control-law says otherwise (the modal law takes every pose but drives itself with one
-a controller period; the report says how many did). Verdict: no process died, >= 99.9 % of the triggered
-profiles became poses the compensator used, and no process grew by more than 5 MB of resident memory
-from the end of the first interval (warm-up: JIT, DDS discovery) to the end. The totals are exact: the trigger clock is paused before and after the run until every node has reported
-(per-interval counts come from the nodes' 0.5 s reports and are only as exact as their phases).
+control law unless --control-law says otherwise (the modal law takes every pose but drives itself with one a
+controller period; the report says how many did). Verdict: no process died, >= 99.9 % of the triggered
+profiles became poses the compensator used, and no process grew by more than 5 MB of resident memory from the
+end of the first interval (warm-up: JIT, DDS discovery) to the end. The totals are exact: the trigger clock is
+paused before and after the run until every node has reported (per-interval counts come from the nodes' 0.5 s
+reports and are only as exact as their phases).
 """
 from __future__ import annotations
 
