@@ -167,6 +167,7 @@ class ModalController:
     def update(self, time: float, z: np.ndarray, variance: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
         """The velocity for this pose (zero without a reference: the pose is only measured)."""
         T = self.design.period_s
+        spacing = T  # the poses' median spacing: measured below whenever a period is under way
         if self.time is not None:
             gap = (time - self.time) / T
             if time < self.last_stamp or gap > MAX_GAP + 0.5:
@@ -174,7 +175,8 @@ class ModalController:
             else:
                 self.intervals.append(min(time - self.last_stamp, T))
                 self.last_stamp = time
-                if gap < 1.0 - 0.5 * median(self.intervals) / T:
+                spacing = median(self.intervals)
+                if gap < 1.0 - 0.5 * spacing / T:
                     self.skipped += 1  # this period has its pose: this one has no increment of its own
                     return self.velocity
         if self.time is None:
@@ -191,8 +193,7 @@ class ModalController:
             # than the controller start a period with every pose, each up to half a spacing early: the model
             # ran up to 1.5x fast. Pulling a grid towards such stamps drifts it, as the stamps that start a
             # period are chosen by where the grid is.)
-            one_a_period = median(self.intervals) >= ONE_POSE_A_PERIOD * T
-            self.time = time if one_a_period else self.time + periods * T
+            self.time = time if spacing >= ONE_POSE_A_PERIOD * T else self.time + periods * T
             self._measure(z, variance)
         if reference is None:
             self.velocity, self.pending = np.zeros(6), np.zeros(6)

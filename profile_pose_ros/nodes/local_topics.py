@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 Taker = Callable[[bytes], None]
 
@@ -38,6 +38,13 @@ Taker = Callable[[bytes], None]
 # queue overflows, and then KEEP_LAST drops the oldest, reliable or not.
 LOOP_INPUT_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT,
                             durability=DurabilityPolicy.VOLATILE)
+
+
+def profile_input_qos(depth: int) -> QoSProfile:
+    """How a node takes profiles over DDS: sensor-data QoS (a consumer that falls behind drops the oldest)
+    with a queue of its own depth."""
+    return QoSProfile(depth=depth, reliability=qos_profile_sensor_data.reliability,
+                      durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
 
 
 class LocalTopics:

@@ -18,7 +18,6 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 
 from ..core.estimator import WEIGHTINGS, EstimatorOptions, estimate_pose
@@ -33,7 +32,7 @@ from ..core.sequence_gaps import SequenceGaps
 from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
-from .local_topics import LocalTopics, LoopOutput
+from .local_topics import LocalTopics, LoopOutput, profile_input_qos
 from .messages import PoseMessagePair, cdr_stamp_ns
 from .parameters import Param, declare_all, updated
 from .realtime import REALTIME_PARAMETERS
@@ -176,8 +175,7 @@ class PoseEstimatorNode(Node):
         # driver's sequence numbers count the overwritten ones too.
         self.profile_sub = self.create_subscription(
             PointCloud2, "profile", self._on_profile,
-            QoSProfile(depth=self.values["queue_depth"], reliability=qos_profile_sensor_data.reliability,
-                       durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history),
+            profile_input_qos(self.values["queue_depth"]),
             callback_group=ServedDirectly(), raw=True,  # serialized: decode_profile_cdr reads it in place
             event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
         for handler in SubscriptionEventCallbacks(message_lost=self._on_lost).create_event_handlers(

@@ -1,7 +1,6 @@
 """A package node in its own process on a private DDS domain, and a client node in this process."""
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
@@ -20,8 +19,7 @@ class NodeProcess:
 
         self.domain_id = domain_id
         self.log_path = log_path
-        program = processes.executable(executable, module) if executable else [sys.executable, "-m", module]
-        command = program + ["--ros-args", *ros_args]
+        command = processes.executable(executable, module) + ["--ros-args", *ros_args]
         self.process = processes.start(command, domain_id, log_path)
         self.rclpy = rclpy
         self.context = Context()

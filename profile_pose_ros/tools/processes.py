@@ -19,10 +19,11 @@ def fresh_domain_id() -> int:
     return 1 + (os.getpid() * 13 + next(_DOMAINS)) % 200
 
 
-def executable(name: str, module: str) -> list[str]:
-    """The venv's console script if installed, else `python -m module`."""
-    exe = Path(sys.executable).parent / name
-    return [str(exe)] if exe.exists() else [sys.executable, "-m", module]
+def executable(name: str | None, module: str) -> list[str]:
+    """The venv's console script if installed, else `python -m module` (always, for a module without a
+    console script: name None)."""
+    exe = Path(sys.executable).parent / name if name else None
+    return [str(exe)] if exe is not None and exe.exists() else [sys.executable, "-m", module]
 
 
 def _die_with_parent() -> None:
