@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from profile_pose_ros.tools.experiment import (METRICS, REACHED, STEP_ATTEMPTS, damping_from_overshoot, recorded_step,
-                                               step_metrics)
+from profile_pose_ros.tools.experiment import (BEFORE_S, MAX_HOLE_S, METRICS, REACHED, RECORD_S, STEP_ATTEMPTS,
+                                               damping_from_overshoot, record_flaw, recorded_step, step_metrics)
 
 
 def second_order_step(zeta: float, size: float = 1e-3, rate: float = 83.333,
@@ -60,6 +60,18 @@ def test_a_response_that_never_rises_has_metrics_not_an_error() -> None:
 def test_no_overshoot_is_critically_damped_or_more() -> None:
     assert damping_from_overshoot(0.0) == 1.0
     assert damping_from_overshoot(65.88) == pytest.approx(0.132, abs=0.002)  # Table IV's y, open loop
+
+
+def test_a_record_with_a_hole_or_without_a_baseline_or_half_its_samples_cannot_measure_a_step() -> None:
+    period, start = 0.012, 100.0
+    stamps = np.arange(start - 1.0, start + 3.0, period) + 0.003  # one sample a period, around the step
+    assert record_flaw(stamps, start, period) == ""
+    assert record_flaw(np.delete(stamps, [90, 91, 92]), start, period) == ""  # three lost: a 48 ms gap
+    rise_lost = stamps[(stamps < start + 0.01) | (stamps > start + 0.3)]  # the rise and first ring lost
+    assert "hole" in record_flaw(rise_lost, start, period)
+    assert "hole" in record_flaw(stamps[stamps < start + RECORD_S - MAX_HOLE_S - period], start, period)  # the end
+    assert "stalled" in record_flaw(stamps[(stamps < start - 2 * BEFORE_S) | (stamps > start)], start, period)
+    assert "samples in this step" in record_flaw(stamps[::3], start, period)
 
 
 class _StepsSpoiledAtFirst:
