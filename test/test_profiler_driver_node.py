@@ -11,7 +11,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from profile_pose_ros.core import render_profile
-from profile_pose_ros.nodes.diagnostics import WARN
+from profile_pose_ros.nodes.diagnostics import ERROR
 from profile_pose_ros.nodes.messages import points_from_cloud
 from profile_pose_ros.nodes.profiler_driver import ProfilerDriverNode
 from profile_pose_ros.sim.cell import SensorNoise, SimCell
@@ -55,7 +55,7 @@ class Rig:
     def wait_ready(self, timeout: float = 15.0) -> None:
         """Streaming, the MCU's clock trained, and the counters ready to be paired by the next trigger."""
         link = self.link
-        assert self.ros.spin_until(lambda: link.state == "streaming" and link.trigger.ok
+        assert self.ros.spin_until(lambda: link.state == "streaming" and link.stamps_trusted
                                    and link.matcher.pairing, timeout), (
             link.state, link.last_error, link.trigger.state, link.trigger.last_error, link.trigger.reopens,
             link.matcher.offset, link.counters)
@@ -65,7 +65,8 @@ class Rig:
         counters = self.link.counters
 
         def done() -> bool:  # every frame decided on: published, or one of the link's counted drops
-            return counters.published + counters.dropped + counters.discarded + counters.late_lines >= triggers
+            return (counters.published + counters.dropped + counters.discarded + counters.late_lines
+                    + counters.unconfirmed + counters.untimed) >= triggers
         assert self.ros.spin_until(done, timeout), (counters, self.cell.profiler.trigger_count)
         assert self.cell.join_clock(5.0)  # its last truth is recorded after its profile went out
         self.ros.spin_until(lambda: len(self.profiles) >= counters.published, 2.0)
@@ -174,9 +175,9 @@ def test_streams_again_after_the_cell_restarts(rig_factory) -> None:
     assert first is not None and rig.link.counters.connections == 2
     rig.ros.spin_until(lambda: rig.link.counters.published >= before + 100, 10.0)
     assert rig.cell.join_clock(5.0)
-    # a profile that beats the new MCU's READY to the driver goes out with its receive time (counted),
-    # never with a stale pairing
-    assert rig.link.counters.unsynced <= 2
+    # a profile that beats the new MCU's READY to the driver is dropped (counted), never published with
+    # its receive time or a stale pairing
+    assert rig.link.counters.unsynced == 0
     rig.check_published_against_truth()
 
 
@@ -190,18 +191,26 @@ def test_serial_garbage_is_counted_and_stamps_stay_synced(rig_factory) -> None:
     rig.check_published_against_truth()
 
 
-def test_silent_mcu_is_reported_and_profiles_keep_flowing(rig_factory) -> None:
+def test_silent_mcu_stops_the_profiles_with_an_error_and_they_resume_with_trigger_stamps(rig_factory) -> None:
+    """A profile without its trigger's time is never stamped with its arrival time: 150 ms late on the
+    wire, it would look fresh to every staleness check downstream."""
     rig = rig_factory()
     rig.wait_ready()
     rig.cell.mcu.faults.silent = True
+    rig.cell.profiler.faults.delay_s = 0.15
     rig.cell.run_clock(100.0, 0)
     diagnostics = []
     rig.ros.nodes[-1].create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 50)
     link = rig.link
-    assert rig.ros.spin_until(lambda: link.trigger.state == "silent" and link.counters.unsynced > 20, 10.0)
-    warned = lambda: any(s.level == WARN and "silent" in s.message for a in diagnostics for s in a.status)  # noqa
-    assert rig.ros.spin_until(warned, 5.0)
+    assert rig.ros.spin_until(lambda: link.trigger.state == "silent", 10.0)
+    published_while_silent = link.counters.published
+    assert rig.ros.spin_until(lambda: link.counters.untimed > 50, 10.0), link.counters
+    assert link.counters.published == published_while_silent and link.counters.unsynced == 0
+    said = lambda: any(s.level == ERROR and "not published" in s.message for a in diagnostics for s in a.status)  # noqa
+    assert rig.ros.spin_until(said, 5.0)
     rig.cell.mcu.faults.silent = False
-    synced_before = link.counters.published - link.counters.unsynced
-    assert rig.ros.spin_until(lambda: link.counters.published - link.counters.unsynced > synced_before + 50, 10.0)
-    assert link.state == "streaming"
+    assert rig.ros.spin_until(lambda: link.counters.published > published_while_silent + 50, 10.0)
+    assert link.state == "streaming" and link.counters.unsynced == 0
+    rig.cell.stop_clock()
+    rig.ros.spin_until(lambda: len(rig.profiles) >= link.counters.published, 2.0)
+    rig.check_published_against_truth()

@@ -6,10 +6,16 @@ scheduler). So the host time of a device tick follows the *lower envelope* of (a
 against device time, with a slope for the MCU oscillator's drift (a ceramic resonator: up to 0.5 %).
 A mean-based fit would add the average scheduling delay to every stamp; the envelope adds only the
 smallest one, which the link then estimates from PING round trips and subtracts.
+
+How late the map can be is known only from samples with a known bound on their own delay: a PONG's
+delay is at most its PING's round trip (the MCU read its clock after the PING arrived). The map carries
+the smallest such bound among the samples that set its offset (`error_bound`); stamps are trusted only
+while it is small, because a map still settling moves between two triggers, and profiles stamped in that
+time get gaps that are not whole trigger periods (or, with a burst of late lines, one stamp twice).
 """
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
 
 import numpy as np
 
@@ -104,6 +110,7 @@ class ClockMap:
         self.converged_after_s = converged_after_s
         self.max_drift = max_drift  # a ceramic resonator is within 0.5 %
         self._samples = SampleWindow()
+        self._bounds: deque[tuple[float, float]] = deque()  # (device s, delay bound s), bounds increasing
         self._ref: tuple[float, float] | None = None
         self._fit: tuple[float, float] | None = None  # (intercept, slope) relative to _ref
         self._fitted_at = -np.inf
@@ -111,6 +118,7 @@ class ClockMap:
 
     def reset(self) -> None:
         self._samples.clear()
+        self._bounds.clear()
         self._ref = self._fit = None
         self._fitted_at = -np.inf
         self.resets += 1
@@ -128,7 +136,20 @@ class ClockMap:
     def converged(self) -> bool:
         return self.span >= self.converged_after_s
 
-    def add(self, device_s: float, host_s: float) -> None:
+    @property
+    def error_bound(self) -> float:
+        """How much later than the true host time the map may put a device time now (s): the smallest
+        delay bound among the samples of the recent window (inf before convergence or without one)."""
+        if not self.converged:
+            return float("inf")
+        newest = self._samples.last_device()
+        while self._bounds and self._bounds[0][0] < newest - self.recent_s:
+            self._bounds.popleft()
+        return self._bounds[0][1] if self._bounds else float("inf")
+
+    def add(self, device_s: float, host_s: float, delay_bound: float = float("inf")) -> None:
+        """A sample: the device time of a line and the host time it was sent; delay_bound, if known, is
+        the most the line can have been delayed (a PONG: its PING's round trip)."""
         if self._ref is None:
             self._ref = (device_s, host_s)
         if self._fit is not None and (host_s < self.to_host(device_s) - self.jump_s
@@ -137,6 +158,10 @@ class ClockMap:
             self._ref = (device_s, host_s)
         d, h = device_s - self._ref[0], host_s - self._ref[1]
         self._samples.append(d, h, self.window_s)
+        if delay_bound < float("inf"):  # a sliding-window minimum: drop the bounds this one beats
+            while self._bounds and self._bounds[-1][1] >= delay_bound:
+                self._bounds.pop()
+            self._bounds.append((d, delay_bound))
         if self._fit is None or d - self._fitted_at >= self.refit_s:
             self._refit()
             self._fitted_at = d

@@ -6,6 +6,7 @@ and never raises into the caller: a device fault is a state, a counter and `last
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -19,6 +20,7 @@ from .trigger_link import TriggerLink
 
 CONNECTING, SYNCHRONISING, STREAMING, BACKOFF, STOPPED = (
     "connecting", "synchronising", "streaming", "backoff", "stopped")
+CLOCK_STEP_S = 1.0  # a stamp this far behind the last one: the host clock was set back; carry on from it
 
 
 @dataclass
@@ -28,6 +30,7 @@ class LinkSettings:
     backoff_min: float = 0.1
     backoff_max: float = 0.5
     sync_timeout: float = 0.02  # how long a profile waits for its trigger line
+    max_stamp_error: float = 2e-4  # s: a trigger stamp the MCU clock map cannot bound this closely is not used
     sync_quiet: float = 0.05  # quiet time after disarming before the counters are paired
     resync_after_misses: int = 20  # consecutive unmatched profiles (with the MCU alive) -> pair again
 
@@ -39,9 +42,13 @@ class LinkCounters:
     dropped: int = 0  # gaps in the profiler's trigger count: profiles the device took but we never got
     #                   (in the stream, or while reconnecting)
     bad_frames: int = 0
-    unsynced: int = 0  # published with the receive time: no MCU, or the MCU silent
+    unsynced: int = 0  # published with the receive time: no MCU configured, or stamp_source 'receive'
+    untimed: int = 0  # not published: an MCU is configured but is silent, disconnected or not paired
     late_lines: int = 0  # not published: the MCU is alive but this trigger's line missed sync_timeout
     discarded: int = 0  # received while the MCU link starts or counters are paired (trigger time unknown)
+    unconfirmed: int = 0  # not published: the trigger's line came, but the clock map could not bound its
+    #                       host time within max_stamp_error (the map still settling, or every PING slow)
+    out_of_order: int = 0  # not published: its stamp was not after the last published one (never expected)
     connections: int = 0
     resyncs: int = 0
     unacknowledged_pairings: int = 0  # pairings abandoned: the MCU did not acknowledge DISARM or RESET in time
@@ -63,6 +70,7 @@ class ProfilerLink:
         self.matcher = TriggerMatcher()
         self._cond = threading.Condition()
         self._last_count: int | None = None
+        self._last_stamp = -math.inf  # the newest published stamp: stamps only ever go forward
         self._count_seen_on_this_connection = False
         self._misses = 0
         self._resync = threading.Event()
@@ -70,10 +78,11 @@ class ProfilerLink:
         self._thread = threading.Thread(target=self._run, name="profiler-link", daemon=True)
 
     # ---------------------------------------------------------------- wiring
-    def on_trigger(self, seq: int, host_time: float) -> None:
-        """TriggerLink's callback (its thread)."""
+    def on_trigger(self, seq: int, host_time: float, error_bound: float) -> None:
+        """TriggerLink's callback (its thread). A time the clock map cannot vouch for is kept as NaN: the
+        profile of that trigger is then known to be untimed rather than waiting for a line that came."""
         with self._cond:
-            self.matcher.add_trigger(seq, host_time)
+            self.matcher.add_trigger(seq, host_time if error_bound <= self.settings.max_stamp_error else math.nan)
             self._cond.notify_all()
 
     def request_resync(self, reason: str) -> None:
@@ -142,7 +151,7 @@ class ProfilerLink:
 
     def _synchronise(self) -> None:
         """Disarm, let the stream go quiet, reset and re-arm the MCU: then the first trigger line and the
-        first profile are the same pulse. Without a live MCU, profiles keep their receive times."""
+        first profile are the same pulse. Without a live MCU there is nothing to pair (and no profile goes out)."""
         if self.trigger is None or not self.trigger.ok:
             return
         self.state = SYNCHRONISING
@@ -197,28 +206,42 @@ class ProfilerLink:
         self._last_count = frame.trigger_count
         self._count_seen_on_this_connection = True
         stamp = self._trigger_time(frame.trigger_count)
-        synced = stamp is not None
-        if not synced and self._mcu_starting():
-            c.discarded += 1  # a stamp from the receive time now would be ms off; the MCU is moments away
-            return
-        if not synced and self._mcu_paired():
-            c.late_lines += 1  # the MCU is alive but this trigger's line is late or lost: a receive-time
-            return  #            stamp would be wrong by milliseconds, and the loop trusts stamps
-        if not synced:
+        if stamp is None or math.isnan(stamp):
+            if self._stamped_by_trigger():
+                self._count_untimed(stamp)  # never a receive-time stamp: it would look fresh and exact
+                return
             c.unsynced += 1
-            stamp = arrival
+            stamp, synced = arrival, False
+        else:
+            synced = True
+        if stamp <= self._last_stamp and self._last_stamp - stamp < CLOCK_STEP_S:
+            c.out_of_order += 1
+            return
+        self._last_stamp = stamp
         self.emit(frame, stamp, synced)
         c.published += 1
 
-    def _mcu_paired(self) -> bool:
-        return (self.trigger is not None and self.settings.stamp_source == "trigger" and self.trigger.ok
-                and self.matcher.offset is not None)
+    def _stamped_by_trigger(self) -> bool:
+        """An MCU is configured and stamps come from it: a profile without its trigger's time is dropped."""
+        return self.trigger is not None and self.settings.stamp_source == "trigger"
 
-    def _mcu_starting(self) -> bool:
-        """The MCU link is configured and opening, training its clock or pairing counters."""
-        if self.trigger is None or self.settings.stamp_source != "trigger":
-            return False
-        return self.trigger.state == CONNECTING_MCU or self.matcher.pairing
+    def _count_untimed(self, stamp: float | None) -> None:
+        """Why a profile had no trigger time (stamp None: no line; NaN: a line the clock map cannot vouch for)."""
+        c = self.counters
+        if stamp is not None:
+            c.unconfirmed += 1  # the clock map still settling (after a start, reconnect or MCU restart)
+        elif self.trigger.state == CONNECTING_MCU or self.matcher.pairing:
+            c.discarded += 1  # the MCU link opening, training its clock or pairing counters
+        elif self.trigger.ok and self.matcher.offset is not None:
+            c.late_lines += 1  # the MCU is alive and paired but this trigger's line is late or lost
+        else:
+            c.untimed += 1  # the MCU silent, disconnected, or not paired
+
+    @property
+    def stamps_trusted(self) -> bool:
+        """The next trigger would be stamped: the MCU is up and its clock map bounds the stamp closely."""
+        return (self.trigger is not None and self.trigger.ok
+                and self.trigger.clock.error_bound <= self.settings.max_stamp_error)
 
     def _trigger_time(self, trigger_count: int) -> float | None:
         with self._cond:

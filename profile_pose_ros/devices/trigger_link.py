@@ -28,10 +28,11 @@ KERNEL_STAMP = struct.Struct("qq")  # struct timespec (64-bit Linux)
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
 READY_WINDOW_S = 1.0  # a READY this soon after our RESET or our opening the port is the expected one
 CONVERGING_PING_PERIOD = 0.02  # s: ping faster until the clock map has a few seconds of samples
+PONG_TIMEOUT_S = 1.0  # an unanswered PING this old is lost (the MCU answers within milliseconds)
 
 
 class TriggerLink:
-    def __init__(self, url: str, baudrate: int, on_trigger: Callable[[int, float], None],
+    def __init__(self, url: str, baudrate: int, on_trigger: Callable[[int, float, float], None],
                  on_resync_needed: Callable[[str], None], trigger_latency: float = AUTO_LATENCY,
                  ping_period: float = 0.25, silent_after: float = 1.0, training_pings: int = 20,
                  reopen_delay: float = 0.5) -> None:
@@ -197,17 +198,22 @@ class TriggerLink:
             self.last_error = f"bad line: {exc}"
             return
         sent_at = arrival - self._transmission(len(line) + 1)
-        if isinstance(message, Pong) and self._pings:
-            ping_sent = self._pings.popleft()
-            self._round_trips.append(sent_at - ping_sent - self._transmission(len("PING\n")))
+        delay_bound = float("inf")
+        if isinstance(message, Pong):
+            while self._pings and sent_at - self._pings[0] > PONG_TIMEOUT_S:
+                self._pings.popleft()  # its PONG was lost: pairing the next PONG with it would overstate
+            if self._pings:            # every round trip from then on
+                ping_sent = self._pings.popleft()
+                delay_bound = sent_at - ping_sent - self._transmission(len("PING\n"))
+                self._round_trips.append(delay_bound)
         if isinstance(message, (Trigger, Pong)):
-            device_s = self._clock_sample(message.micros, sent_at)
+            device_s = self._clock_sample(message.micros, sent_at, delay_bound)
         if isinstance(message, Trigger):
             self.triggers += 1
             if self._last_seq is not None and message.seq > self._last_seq + 1:
                 self.triggers_lost += message.seq - self._last_seq - 1
             self._last_seq = message.seq
-            self.on_trigger(message.seq, self.clock.to_host(device_s) - self.latency)
+            self.on_trigger(message.seq, self.clock.to_host(device_s) - self.latency, self.clock.error_bound)
         elif isinstance(message, Ack):
             self._acks.setdefault(message.command, threading.Event()).set()
         elif isinstance(message, Ready):
@@ -240,7 +246,7 @@ class TriggerLink:
         """Shortest recent PING -> PONG time net of transmission (s): an upper bound on each way's latency."""
         return min(self._round_trips) if self._round_trips else float("nan")
 
-    def _clock_sample(self, micros: int, sent_at: float) -> float:
+    def _clock_sample(self, micros: int, sent_at: float, delay_bound: float) -> float:
         """Feed the clock map; returns the line's MCU time in seconds (unwrapped)."""
         last = self._last_micros
         if last is not None and 1_000_000 < last - micros < MICROS_WRAP // 2:
@@ -250,7 +256,7 @@ class TriggerLink:
             self.clock.reset()
         self._last_micros = micros
         device_s = self._unwrap(micros) * 1e-6
-        self.clock.add(device_s, sent_at)
+        self.clock.add(device_s, sent_at, delay_bound)
         return device_s
 
     def stop(self) -> None:

@@ -45,13 +45,18 @@ PARAMETERS = [
           "sim_cell); empty: no MCU, profiles are stamped with their receive time.", read_only=True),
     Param("baudrate", 1000000, "Trigger MCU baud rate (also used to subtract each line's transmission time).",
           9600, 4000000, read_only=True),
-    Param("stamp_source", "trigger", "'trigger': the trigger's host time via the MCU clock; 'receive': arrival "
-          "time (falls back to this while the MCU is silent).", read_only=True),
+    Param("stamp_source", "trigger", "'trigger': the trigger's host time via the MCU clock (a profile without "
+          "one is dropped and counted, never stamped otherwise); 'receive': arrival time, for a cell without an "
+          "MCU (a stamp that is late by the device's transfer time).", read_only=True),
     Param("trigger_latency", 0.0, "Delay from a trigger's line leaving the MCU to its arrival here, beyond "
           "transmission (s): a USB adapter's latency; measure it once per cell. -1: half the fastest PING round "
           "trip (assumes a symmetric link).", -1.0, 0.05, read_only=True),
     Param("sync_timeout", 0.02, "How long a profile may wait for its trigger line (s).", 0.0, 0.1,
           read_only=True),
+    Param("max_stamp_error", 2e-4, "A profile is published with its trigger's time only while the MCU clock map "
+          "bounds that time this closely (s): the fastest recent PING round trip. Others are dropped and counted "
+          "(a map still settling moves between triggers). A USB serial adapter needs its round trip here.",
+          1e-5, 0.05, read_only=True),
     Param("frame_id", "profiler", "frame_id of the published profiles (the profiler frame F)."),
     Param("max_input_age", 1.0, "Reconnect when the device sends nothing for this long (s); 0 disables "
           "(ljx in external-trigger mode sends nothing between triggers).", 0.0, 60.0, read_only=True),
@@ -61,6 +66,11 @@ PARAMETERS = [
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
     *REALTIME_PARAMETERS,
 ]
+
+
+def trigger_stamps(v: dict) -> bool:
+    """Whether profiles carry their trigger's time (an MCU configured, stamp_source 'trigger')."""
+    return bool(v["serial_url"]) and v["stamp_source"] == "trigger"
 
 
 def make_source(v: dict):
@@ -84,7 +94,7 @@ class ProfilerDriverNode(Node):
         settings = LinkSettings(stamp_source=v["stamp_source"], max_input_age=v["max_input_age"],
                                 backoff_min=v["reconnect_min"], backoff_max=max(v["reconnect_min"],
                                                                                 v["reconnect_max"]),
-                                sync_timeout=v["sync_timeout"])
+                                sync_timeout=v["sync_timeout"], max_stamp_error=v["max_stamp_error"])
         self.profile_pub = self.create_publisher(PointCloud2, "profile", qos_profile_sensor_data)
         self.profile_out = LoopOutput(self.profile_pub, local, self.get_logger())
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -94,7 +104,7 @@ class ProfilerDriverNode(Node):
         self.link = ProfilerLink(source, trigger, settings, self._emit,
                                  log=lambda text: logger.warn(text, throttle_duration_sec=1.0),
                                  batch_end=self._hand_over_newest if local is not None else None)
-        self._window = (time.monotonic(), 0, 0, 0)
+        self._window = (time.monotonic(), 0, 0, 0, 0)
         self.latency = LatencyWindow("trigger_to_profile_ms")  # the stamp (trigger or receive time) -> published
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
         self.link.start()
@@ -123,15 +133,22 @@ class ProfilerDriverNode(Node):
     def _publish_diagnostics(self) -> None:
         link, c, trigger = self.link, self.link.counters, self.link.trigger
         now = time.monotonic()
-        start, published0, dropped0, bad0 = self._window
-        self._window = (now, c.published, c.dropped, c.bad_frames)
+        start, published0, dropped0, bad0, unconfirmed0 = self._window
+        self._window = (now, c.published, c.dropped, c.bad_frames, c.unconfirmed)
         elapsed = max(now - start, 1e-9)
         rate = (c.published - published0) / elapsed
         new_drops, new_bad = c.dropped - dropped0, c.bad_frames - bad0
         if link.state != STREAMING:
             level, message = ERROR, f"{link.state}: {link.last_error or 'no connection yet'}"
-        elif trigger is not None and not trigger.ok:
-            level, message = WARN, f"trigger MCU {trigger.state} ({trigger.last_error}); stamping with receive time"
+        elif trigger is not None and not trigger.ok and trigger_stamps(self.values):
+            level, message = ERROR, (f"trigger MCU {trigger.state} ({trigger.last_error or 'no line yet'}): profiles "
+                                     "have no trigger time and are not published")
+        elif trigger is None or not trigger_stamps(self.values):
+            level, message = WARN, f"profiles stamped with their receive time ({rate:.1f} Hz): no trigger MCU in use"
+        elif c.unconfirmed > unconfirmed0:
+            level, message = WARN, (f"{c.unconfirmed - unconfirmed0} profiles dropped: their trigger time is bounded "
+                                    f"to {trigger.clock.error_bound * 1e3:.2f} ms, not max_stamp_error "
+                                    f"{self.values['max_stamp_error'] * 1e3:.2f} ms")
         elif new_drops or new_bad:
             level, message = WARN, f"{new_drops} profiles dropped, {new_bad} bad frames in {elapsed:.1f} s"
         elif rate == 0:
@@ -141,7 +158,8 @@ class ProfilerDriverNode(Node):
         values = {"state": link.state, "rate_hz": rate, "profiles_published": c.published,
                   "profiles_dropped": c.dropped, "bad_frames": c.bad_frames, "unsynced_profiles": c.unsynced,
                   "dropped_late_trigger_line": c.late_lines,
-                  "discarded_while_pairing": c.discarded, "connections": c.connections, "pairings": c.resyncs,
+                  "discarded_while_pairing": c.discarded, "dropped_unconfirmed_stamp": c.unconfirmed,
+                  "dropped_out_of_order": c.out_of_order, "dropped_untimed": c.untimed, "connections": c.connections, "pairings": c.resyncs,
                   "pairings_unacknowledged": c.unacknowledged_pairings,
                   "pairings_disagreeing": link.matcher.disagreements,
                   "last_error": link.last_error or "none", "source": link.source.name,
@@ -155,6 +173,7 @@ class ProfilerDriverNode(Node):
                            "trigger_count_offset": link.matcher.offset if link.matcher.offset is not None else "none",
                            "mcu_clock_drift_ppm": trigger.clock.drift_ppm,
                            "mcu_clock": "converged" if trigger.clock.converged else "converging",
+                           "stamp_error_bound_us": trigger.clock.error_bound * 1e6,
                            "serial_latency_us": trigger.latency * 1e6,
                            "fastest_ping_round_trip_us": trigger.fastest_round_trip * 1e6,
                            "kernel_timestamps": trigger.kernel_timestamps,

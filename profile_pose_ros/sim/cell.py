@@ -74,10 +74,15 @@ class SimCell:
         self.mcu.start()
         return self
 
-    def robot_signal(self, final: bool = False) -> Truth | None:
-        """One per-cycle output edge of the robot controller. Thread-safe; returns the truth if it fired."""
+    def robot_signal(self, at_ns: int | None = None, final: bool = False) -> Truth | None:
+        """One per-cycle output edge of the robot controller, at monotonic time at_ns (None: now). Thread-safe;
+        returns the truth if it fired. A real controller's edges come from its hardware clock, on time
+        however late this process is to simulate them: the MCU stamps, the truth and the arm's pose are
+        all taken at at_ns."""
         with self._lock:
             wall, mono = paired_clocks()
+            if at_ns is not None:
+                wall, mono = wall - (mono - at_ns), at_ns
             self.signals += 1
             seq = self.mcu.robot_signal(mono)
             if seq is None:
@@ -118,7 +123,7 @@ class SimCell:
             elif delay < -period:
                 self.late_signals += 1
             final = max_triggers > 0 and fired + 1 >= max_triggers
-            if self.robot_signal(final=final) is not None:
+            if self.robot_signal(int(deadline * 1e9), final=final) is not None:
                 fired += 1
                 if final:
                     return

@@ -44,7 +44,7 @@ class Session:
 
 
 class RobotController:
-    def __init__(self, arm: Arm, on_period: Callable[[], None] | None = None, host: str = "127.0.0.1",
+    def __init__(self, arm: Arm, on_period: Callable[[int], None] | None = None, host: str = "127.0.0.1",
                  port: int = 0, period_ticks: int = 3, faults: ControllerFaults | None = None,
                  seed: int = 3, on_applied: Callable[[float, tuple[int, ...]], None] | None = None) -> None:
         """on_applied(wall time, increment in units): every armed period, what the arm was told to move
@@ -106,14 +106,15 @@ class RobotController:
                 self.arm.advance(TICK_S)
             tick += 1
             if tick % self.period_ticks == 0:
-                self._period()
+                self._period(int(deadline * 1e9))
 
-    def _period(self) -> None:
+    def _period(self, tick_ns: int) -> None:
         self._serve_period()
         if self.on_period is not None:
             # The per-cycle output, right after the STATE, as the real controller's task does both at once
-            # (rendering the profile first delayed the STATE by milliseconds). The arm has not moved since.
-            self.on_period()
+            # (rendering the profile first delayed the STATE by milliseconds). The arm has not moved since;
+            # the edge is at the tick's time, however late this thread runs.
+            self.on_period(tick_ns)
 
     def _serve_period(self) -> None:
         with self._lock:

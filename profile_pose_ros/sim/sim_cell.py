@@ -61,6 +61,10 @@ PARAMETERS = [
           0, 2 ** 31 - 1),
     Param("mcu_silent", False, "Fault: the MCU fires but writes and answers nothing."),
     Param("mcu_garbage_fraction", 0.0, "Fault: fraction of triggers preceded by a line of noise.", 0.0, 1.0),
+    Param("mcu_close_after_triggers", 0, "Fault: drop the MCU's serial connection after every N triggers (0: never).",
+          0, 2 ** 31 - 1),
+    Param("mcu_reboot_after_triggers", 0, "Fault: the MCU restarts by itself (its clock and count from zero, READY) "
+          "after every N triggers (0: never).", 0, 2 ** 31 - 1),
     Param("mcu_baudrate", 1000000, "MCU serial baud rate (line transmission time).", 9600, 4000000, read_only=True),
     Param("mcu_drift_ppm", 300.0, "MCU clock error (ppm).", -10000.0, 10000.0, read_only=True),
     Param("mcu_micros_start", 0, "MCU micros() at each boot (to exercise the 32-bit wrap).", 0, 2 ** 32 - 1,
@@ -86,7 +90,8 @@ PARAMETERS = [
 ]
 
 _FAULTS = {"drop_fraction", "delay_ms", "corrupt_fraction", "corrupt_mode", "close_after_frames",
-           "mcu_silent", "mcu_garbage_fraction", "noise_std", "spike_fraction"}
+           "mcu_silent", "mcu_garbage_fraction", "mcu_close_after_triggers", "mcu_reboot_after_triggers",
+           "noise_std", "spike_fraction"}
 _CLOCK = {"trigger_rate", "max_triggers"}
 _ROBOT = {"program_offset", "state_delay_ms", "state_drop_fraction", "disconnect_after_periods"}
 
@@ -165,6 +170,7 @@ class SimCellNode(Node):
         f.close_after_frames = v["close_after_frames"]
         m = self.cell.mcu.faults
         m.silent, m.garbage_fraction = v["mcu_silent"], v["mcu_garbage_fraction"]
+        m.close_after_triggers, m.reboot_after_triggers = v["mcu_close_after_triggers"], v["mcu_reboot_after_triggers"]
         self.cell.noise.noise_std, self.cell.noise.spike_fraction = v["noise_std"], v["spike_fraction"]
         if self.robot is not None:
             r = self.robot.faults
@@ -211,6 +217,7 @@ class SimCellNode(Node):
                   "frames_corrupted": p.frames_corrupted, "frames_unsent": p.frames_unsent,
                   "profiler_connections": p.server.connections, "profiler_closes": p.closes,
                   "mcu_connections": m.server.connections, "mcu_lines": m.lines_sent,
+                  "mcu_closes": m.closes, "mcu_reboots": m.reboots,
                   "profiler_port": p.port, "mcu_url": m.url, **faults}
         if self.robot is not None:
             r = self.robot

@@ -25,6 +25,8 @@ FIRMWARE_NAME, FIRMWARE_VERSION = "trigger_mcu", "1"
 class McuFaults:
     silent: bool = False  # fires triggers but writes and answers nothing (a dead USB-serial link)
     garbage_fraction: float = 0.0  # per trigger: a line of line noise before the T line
+    close_after_triggers: int = 0  # drop the serial connection after every this many triggers (0: never)
+    reboot_after_triggers: int = 0  # the board restarts by itself after every this many triggers (0: never)
 
 
 class TriggerMcu:
@@ -39,7 +41,8 @@ class TriggerMcu:
         self.boot_ns = time.monotonic_ns()
         self.armed = True  # the firmware boots armed, so a cell without this driver still triggers
         self.seq = 0
-        self.lines_sent = self.commands = 0
+        self.lines_sent = self.commands = self.closes = self.reboots = 0
+        self._fired = 0  # triggers fired, which the scheduled faults count
         self._lock = threading.Lock()
         self._uart = threading.Lock()
         self._line_free_at = 0.0
@@ -72,7 +75,18 @@ class TriggerMcu:
         if self.faults.garbage_fraction > 0 and self.rng.random() < self.faults.garbage_fraction:
             self._write(self.rng.integers(32, 127, int(self.rng.integers(1, 40)), dtype=np.uint8).tobytes() + b"\n")
         self._write(format_trigger(seq, self.micros(monotonic_ns)))
+        self._scheduled_faults()
         return seq
+
+    def _scheduled_faults(self) -> None:
+        self._fired += 1
+        close_every, reboot_every = self.faults.close_after_triggers, self.faults.reboot_after_triggers
+        if close_every and self._fired % close_every == 0:
+            self.closes += 1
+            self.server.drop()  # the host sees the serial server go away and opens the port again
+        if reboot_every and self._fired % reboot_every == 0:
+            self.reboots += 1
+            self.reboot()
 
     # ---------------------------------------------------------------- serial side
     def _write(self, line: bytes) -> None:

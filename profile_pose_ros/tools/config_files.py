@@ -35,7 +35,8 @@ SIM_CELL = {
 }
 HARDWARE = {
     "profiler_driver": {"backend": "ljx", "host": "192.168.0.1", "library_path": "/opt/keyence/lib/libljxacom.so",
-                        "serial_url": "/dev/ttyUSB0"},
+                        "serial_url": "/dev/ttyUSB0",
+                        "max_stamp_error": 3e-3},  # a USB serial adapter's PING round trip: 1-3 ms
     "pose_estimator": {"gauge_file": "/etc/profile_pose_ros/my_gauge.yaml", "refine_model": "dense",
                        "max_profile_age": 0.05},
     "pd_compensator": {"kp": [1.0, 1.0, 1.0, 1.0, 1.0, 1.0], "kd": [0.0] * 6,
