@@ -109,9 +109,10 @@ def test_stale_pose_gives_zero_correction_within_three_periods(ros, law: str) ->
         poses.publish(pose_with_covariance(pose, covariance))
 
     assert ros.spin_until(lambda: node.count_publishers("reference_pose") and node.count_subscribers("correction"), 5)
+    assert ros.spin_until(lambda: node.last_measured is not None, 5.0, action=publish_pose)  # checked against it
     reference.publish(pose_stamped(LOOKING_DOWN, translation + [1e-3, 0, 0], talker.get_clock().now().to_msg(),
                                    "gauge"))
-    assert ros.spin_until(lambda: node.reference is not None, 5.0)
+    assert ros.spin_until(lambda: node.reference is not None, 5.0, action=publish_pose)
     moving = lambda: any(abs(m.twist.linear.x) > 0 for _, m in corrections)  # noqa: E731
     assert ros.spin_until(moving, 5.0, action=publish_pose)
     stopped_at = time.monotonic()  # the poses stop (the estimator rejects every profile, say)
@@ -195,7 +196,57 @@ def test_a_corrupt_reference_is_ignored(ros) -> None:
     node = compensator(ros)
     stamp = Time(nanoseconds=time.time_ns()).to_msg()
     node._on_reference(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge"))
+    assert node.reference is None  # nothing measured yet to check it against
+    node.last_measured = node._vector(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge").pose)
+    node._on_reference(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge"))
     kept = node.reference.copy()
     bad = pose_stamped(LOOKING_DOWN, np.array([0.0, float("nan"), 0.45]), stamp, "gauge")
     node._on_reference(bad)
     np.testing.assert_array_equal(node.reference, kept)
+
+
+@pytest.mark.parametrize("ahead, taken", [(3600.0, False), (0.003, False), (0.001, True), (-0.01, True),
+                                          (-0.06, False)])
+def test_a_pose_is_taken_only_within_its_two_sided_age_window(ros, ahead: float, taken: bool) -> None:
+    """A pose stamped in the future is no fresher than a stale one; one taken stays usable for what is
+    left of max_pose_age, counted on the node's monotonic clock, never for longer."""
+    from rclpy.serialization import serialize_message
+
+    node = compensator(ros, max_pose_age=0.05, max_future=0.002)
+    node.reference = np.zeros(6)
+    stamp = Time(nanoseconds=int((time.time() + ahead) * 1e9)).to_msg()
+    pose = pose_with_covariance(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge"),
+                                np.diag([1e-10] * 3 + [1e-8] * 3))
+    received = time.monotonic()
+    node._on_pose(serialize_message(pose))
+    assert (node.poses, node.corrections) == ((1, 1) if taken else (0, 0))
+    assert node.pose_fresh_until <= (received + 0.05 if taken else -np.inf) + 1e-3
+    if not taken and ahead > 0:
+        assert node.refused["future"] == 1
+
+
+def test_a_pose_or_reference_in_another_frame_or_not_unit_length_is_refused(ros) -> None:
+    from rclpy.serialization import serialize_message
+
+    node = compensator(ros)
+    node.reference = np.zeros(6)
+    stamp = Time(nanoseconds=time.time_ns()).to_msg()
+    covariance = np.diag([1e-10] * 3 + [1e-8] * 3)
+    tool = pose_with_covariance(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "tool"), covariance)
+    tiny = pose_with_covariance(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge"), covariance)
+    o = tiny.pose.pose.orientation
+    o.x, o.y, o.z, o.w = 0.0, 0.0, 0.0, 1e-30
+    for bad in (tool, tiny):
+        node._on_pose(serialize_message(bad))
+    assert node.poses == 0 and node.refused["frame"] == 1 and node.refused["orientation"] == 1
+    node.reference = None
+    node.last_measured = node._vector(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge").pose)
+    for rogue in (pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "tool"),
+                  pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), Time(seconds=1).to_msg(), "gauge"),
+                  pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]),
+                               Time(nanoseconds=time.time_ns() + 3600 * 10 ** 9).to_msg(), "gauge"),
+                  pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45 + 0.05]), stamp, "gauge")):  # a 5 cm jump
+        node._on_reference(rogue)
+    assert node.reference is None and node.refused["reference"] == 4
+    node._on_reference(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.452]), stamp, "gauge"))  # 2 mm: taken
+    assert node.reference is not None

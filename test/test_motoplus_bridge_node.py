@@ -43,6 +43,7 @@ def test_arms_on_request_moves_on_fresh_corrections_only_and_rearms_after_a_faul
     def send(velocity: float, age: float = 0.0) -> None:
         msg = TwistStamped()
         msg.header.stamp = Time(nanoseconds=int((time.time() - age) * 1e9)).to_msg()
+        msg.header.frame_id = "base"
         msg.twist.linear.x = velocity
         corrections.publish(msg)
 
@@ -98,6 +99,7 @@ def test_each_state_is_answered_with_the_correction_made_after_it(ros, tmp_path)
         def on_state(_msg: PoseStamped) -> None:
             msg = TwistStamped()
             msg.header.stamp = Time(nanoseconds=time.time_ns()).to_msg()
+            msg.header.frame_id = "base"
             msg.twist.linear.x = 1e-4
             corrections.publish(msg)
 
@@ -117,3 +119,33 @@ def test_each_state_is_answered_with_the_correction_made_after_it(ros, tmp_path)
         assert np.median(at_once) > 0.9 * period, at_once
     finally:
         processes.stop(sim)
+
+
+@pytest.mark.parametrize("case", ["one correction", "stamped an hour ahead", "stamped 3 ms ahead",
+                                  "in another frame", "stamped in 1970"])
+def test_one_rogue_correction_moves_the_arm_one_period_at_most(ros, controller, case) -> None:
+    """Judged by what the controller applied on its own clock (/sim/robot_increment), not by stamps: a
+    correction drives one period's increment at most, however it is stamped, and one from the future,
+    from 1970 or in another frame none."""
+    bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
+        Parameter("port", value=controller), Parameter("watchdog", value=2.0), Parameter("arm_on_start", value=True),
+        Parameter("diagnostics_period", value=60.0)]))
+    rogue = ros.node("rogue")
+    corrections = rogue.create_publisher(TwistStamped, "correction", 10)
+    applied: list[tuple[float, ...]] = []
+    rogue.create_subscription(TwistStamped, "/sim/robot_increment",
+                              lambda m: applied.append((m.twist.linear.x, m.twist.linear.y)), 1000)
+    assert ros.spin_until(lambda: bridge.client.armed and len(applied) > 5, 30.0), bridge.client.last_error
+    offset = {"one correction": 0.0, "stamped an hour ahead": 3600.0, "stamped 3 ms ahead": 0.003,
+              "in another frame": 0.0, "stamped in 1970": -time.time() + 1.0}[case]
+    msg = TwistStamped()
+    msg.header.stamp = Time(nanoseconds=int((time.time() + offset) * 1e9)).to_msg()
+    msg.header.frame_id = "tool" if case == "in another frame" else "base"
+    msg.twist.linear.x = 0.01  # 10 mm/s: 120 um a period, under the clamp
+    before = len(applied)
+    corrections.publish(msg)
+    ros.spin_until(lambda: len(applied) >= before + 40, 10.0)  # 40 controller periods
+    moving = [a for a in applied[before:] if any(a)]
+    assert len(moving) <= (1 if case == "one correction" else 0), moving
+    if case == "one correction":
+        assert moving, "the fresh correction moved nothing: the test would not see a repeat"

@@ -109,6 +109,72 @@ def test_clock_map_holds_from_half_a_second_on_a_loaded_machine(drift_ppm: float
     assert max(worst) < 0.5e-3
 
 
+def pings_and_triggers(seconds: float, drift_ppm: float, seed: int, pong_delay_ms: tuple[float, float],
+                       bursts: bool):
+    """(device time, arrival, true host time, delay bound) of a 12 ms trigger and PONGs every 20 ms: each
+    PONG's bound is its round trip (its delay plus the PING's way out); a third of the trigger lines wait
+    1-25 ms, and with `bursts` every 0.5 s a CPU stall delivers 4 lines at once."""
+    rng = np.random.default_rng(seed)
+    lines = []
+    for host in np.arange(0.0, seconds, 0.012):
+        delay = 20e-6 + (rng.uniform(1e-3, 25e-3) if rng.random() < 0.3 else rng.exponential(100e-6))
+        lines.append((host, delay, np.inf))
+    for host in np.arange(0.005, seconds, 0.02):
+        delay = rng.uniform(*pong_delay_ms) * 1e-3
+        lines.append((host, delay, delay + rng.uniform(20e-6, 300e-6)))
+    lines.sort()
+    host = np.array([h for h, _, _ in lines]) + 1.79e9
+    arrival = host + np.array([d for _, d, _ in lines])
+    if bursts:
+        for k, h in enumerate(host):
+            stalled_until = np.floor((h - host[0]) / 0.5) * 0.5 + host[0] + 0.048
+            if h <= stalled_until:
+                arrival[k] = max(arrival[k], stalled_until)
+    device = 4000.0 + (host - host[0]) * (1 + drift_ppm * 1e-6)
+    return device, arrival, host, np.array([b for _, _, b in lines])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_clock_map_error_bound_holds_for_every_line(seed: int) -> None:
+    """Whenever the map offers a bound, a stamp is between the truth and the truth plus that bound (and the
+    slope's few microseconds): a profile stamped under it cannot be a whole trigger period off, nor share
+    a stamp with its neighbour."""
+    clock = ClockMap()
+    device, arrival, host, bounds = pings_and_triggers(6.0, 300.0 * (seed - 3), seed, (0.03, 2.0), bursts=True)
+    bounded = 0
+    for d, a, h, b in zip(device, arrival, host, bounds):
+        clock.add(d, a, b)
+        if clock.error_bound < np.inf:
+            bounded += 1
+            assert -1e-9 <= clock.to_host(d) - h <= clock.error_bound + 20e-6
+    assert bounded > 0.5 * len(device)
+
+
+def test_clock_map_bounds_nothing_until_converged_nor_from_slow_pongs() -> None:
+    """A young map, or one whose every PONG was slow (a loaded machine), offers no small bound: the
+    first seconds after a start or an MCU restart give no trusted stamp."""
+    clock = ClockMap()
+    device, arrival, host, bounds = pings_and_triggers(6.0, 300.0, 1, (12.0, 30.0), bursts=True)
+    for d, a, b in zip(device, arrival, bounds):
+        clock.add(d, a, b)
+        assert clock.error_bound == np.inf or clock.error_bound >= 12e-3
+        if d - device[0] < clock.converged_after_s - 0.05:
+            assert clock.error_bound == np.inf
+    assert clock.converged and clock.error_bound < np.inf
+    clock.reset()
+    assert clock.error_bound == np.inf
+
+
+def test_clock_map_bound_expires_with_the_samples_that_set_the_offset() -> None:
+    clock = ClockMap()
+    device, arrival, _ = simulated_samples(100.0, 3.0, 0.0)
+    for k, (d, a) in enumerate(zip(device, arrival)):
+        clock.add(d, a, 1e-4 if k == 100 else np.inf)  # one PONG at 1.0 s
+    assert clock.error_bound == pytest.approx(1e-4)
+    clock.add(device[-1] + 1.5, arrival[-1] + 1.5)  # 3.5 s after it: out of the recent window
+    assert clock.error_bound == np.inf
+
+
 def test_lower_envelope_slope_ignores_points_above_it() -> None:
     x = np.linspace(0.0, 2.0, 200)
     y = 3e-4 * x + np.where(np.arange(200) % 3 == 0, 0.0, np.random.default_rng(1).uniform(0, 0.02, 200))

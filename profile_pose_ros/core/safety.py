@@ -12,11 +12,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
+from .freshness import stamp_age_ok
+
 INVARIANTS = {
     "clamp": "an increment above the per-cycle clamp",
     "not_armed": "motion without an armed session",
     "after_fault": "motion after a fault before an explicit re-arm",
-    "stale": "motion on a stale or missing correction",
+    "stale": "motion on a stale, future-stamped or missing correction",
     "offset": "motion taking the total offset beyond its bound",
 }
 
@@ -28,6 +30,7 @@ class SafetyMonitor:
     max_step: Sequence[int]
     max_offset: Sequence[int]
     max_age_s: Callable[[], float]  # read at every check: the bridge's max_age may change at run time
+    max_future_s: Callable[[], float] = lambda: 0.002  # how far ahead of this clock a stamp may be
     violations: dict[str, int] = field(default_factory=lambda: dict.fromkeys(INVARIANTS, 0))
     checked: int = 0
     last_violation: str = ""
@@ -54,7 +57,7 @@ class SafetyMonitor:
             broken.append("not_armed")
         if self.fault_latched:
             broken.append("after_fault")
-        if stamp_s is None or now_s - stamp_s > self.max_age_s():
+        if stamp_s is None or not stamp_age_ok(now_s - stamp_s, self.max_age_s(), self.max_future_s()):
             broken.append("stale")
         if offset is None or any(abs(o + u) > m for o, u, m in zip(offset, units, self.max_offset)):
             broken.append("offset")

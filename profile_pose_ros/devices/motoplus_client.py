@@ -60,16 +60,18 @@ class MotoPlusClient:
     def __init__(self, host: str, port: int, limits: SessionLimits,
                  increment: Callable[[float], tuple[np.ndarray, float] | None],
                  on_state: Callable[[mp.State, float], None], max_age_s: Callable[[], float] = lambda: 0.024,
+                 max_future_s: Callable[[], float] = lambda: 0.002,
                  log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0,
                  on_sent: Callable[[tuple[int, ...], float, float], None] | None = None,
                  await_correction: Callable[[float], None] | None = None) -> None:
         """increment(now, the wall time of this STATE's answer): (this period's move in m and rad, the
-        trigger time of the correction it comes from), or None to hold still; max_age_s: the monitor's staleness limit;
+        trigger time of the correction it comes from), or None to hold still; max_age_s, max_future_s: the
+        monitor's limits on a stamp's age (two-sided);
         on_sent(units, trigger time, wall time just after the send): each moving CORRECTION as it left;
         await_correction(wall time the STATE arrived): returns when the answer should go out."""
         self.host, self.port, self.limits = host, port, limits
         self.monitor = SafetyMonitor(mp.metres_to_units(limits.max_step), mp.metres_to_units(limits.max_offset),
-                                     max_age_s)
+                                     max_age_s, max_future_s)
         self.rounding = mp.CarriedRounding()  # to units, each remainder carried into the next increment
         self.on_sent = on_sent
         self.await_correction = await_correction

@@ -39,7 +39,7 @@ def spin_composed(executor, nodes: list, stop: StopRequest) -> None:
     compensator = next(node for node in nodes if isinstance(node, PdCompensatorNode))
     due = time.monotonic()
     while executor.context.ok() and not stop.is_set():
-        watchdog_in = compensator.fast_input.tick_due - time.time()
+        watchdog_in = compensator.fast_input.tick_due - time.monotonic()
         bridge.pump(max(0.0, min(due - time.monotonic(), watchdog_in)))
         compensator.pump(0.0)  # no inputs of its own here: runs the watchdog if due
         if time.monotonic() >= due:

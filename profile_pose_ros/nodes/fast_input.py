@@ -45,13 +45,14 @@ class FastInput:
         """subscription and callback: the input (more with add(); None to start with none). guard: an
         optional GuardCondition (in a ServedDirectly group) whose callback runs here when another thread
         triggers it, as promptly as a message. tick: an optional deadline check (the compensator's
-        watchdog), run here when its time comes; it returns the wall-clock time at which it wants to run
-        next, so a node that stays healthy is not woken for it at a fixed rate."""
+        watchdog), run here when its time comes; it returns the time.monotonic() at which it wants to run
+        next, so a node that stays healthy is not woken for it at a fixed rate. Monotonic: a wall clock
+        set forward or back must not hold a deadline off."""
         self.context = context
         self.inputs: list[tuple[Subscription, Callable, bool]] = []
         self.guard = guard
         self.tick = tick
-        self.tick_due = time.time() if tick is not None else math.inf
+        self.tick_due = time.monotonic() if tick is not None else math.inf
         self.wait_set = None
         if subscription is not None:
             self.add(subscription, callback)
@@ -78,7 +79,7 @@ class FastInput:
     def pump(self, timeout_sec: float) -> int:
         """Wait up to timeout_sec (or the tick's deadline) for messages, then handle every one queued and
         the tick if due; returns how many messages."""
-        timeout_sec = max(0.0, min(timeout_sec, self.tick_due - time.time()))
+        timeout_sec = max(0.0, min(timeout_sec, self.tick_due - time.monotonic()))
         if self.wait_set is None:  # nothing to wait on yet (rcl refuses an empty wait set)
             time.sleep(timeout_sec)
             ready = []
@@ -96,7 +97,7 @@ class FastInput:
                 else:
                     callback(taken[0])
                 handled += 1
-        if time.time() >= self.tick_due:
+        if time.monotonic() >= self.tick_due:
             self.tick_due = self.tick()
         return handled
 

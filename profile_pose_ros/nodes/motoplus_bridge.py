@@ -6,7 +6,9 @@ Thin glue around devices.motoplus_client.MotoPlusClient (its own socket thread, 
 controller's STATE). Each STATE's answer waits up to `answer_wait` periods for the correction computed from
 that period's measurement, so a pose can reach the robot one period after its trigger (answering at once
 sends the previous period's correction). A correction older than `max_age` (by its stamp: the profile's
-trigger time) moves nothing; a fault or a lost session disarms until ~/start; STOP goes out on every
+trigger time), stamped more than `max_future` ahead, in another frame than base_frame, or received more
+than max_age ago on this node's monotonic clock moves nothing; a period without a new correction sends
+zero, never the last one again. A fault or a lost session disarms until ~/start; STOP goes out on every
 shutdown path.
 """
 from __future__ import annotations
@@ -23,6 +25,7 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from ..core import motoplus_protocol as mp
+from ..core.freshness import describe_age, stamp_age_ok
 from ..core.latency_window import LatencyWindow
 from ..core.pose_cdr import CdrFormatError, decode_twist_cdr, encode_pose_cdr, encode_twist_cdr
 from ..core.rotation import so3_exp
@@ -52,6 +55,9 @@ PARAMETERS = [
     Param("max_age", 0.024, "A correction older than this (by its stamp: the trigger time) moves nothing (s). "
           "The robot stops within max_age + one period of losing its data: 2 periods keeps that within 3.",
           0.001, 1.0),
+    Param("max_future", 0.002, "A correction stamped more than this ahead of this host's clock moves nothing (s): "
+          "stamps are trigger times, in the past on a healthy cell; one from the future comes from a wrong clock "
+          "or a rogue publisher.", 0.0, 0.1),
     Param("answer_wait", 0.5, "How long (in periods) a STATE's answer may wait for the correction measured at "
           "that STATE's trigger: it leaves as soon as that arrives, else with the newest one at this deadline. "
           "0 answers at once (the previous period's correction: a period more of loop delay). Past ~0.5 a late "
@@ -83,8 +89,10 @@ class MotoPlusBridgeNode(Node):
         v = self.values = declare_all(self, PARAMETERS)
         self.limits = limits_from(v)
         self._lock = threading.Lock()
-        self._velocities: list[tuple[int, np.ndarray]] = []  # (stamp ns, velocity) since the last increment
-        self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity)
+        # (stamp ns, velocity, monotonic receive time) of the corrections since the last increment
+        self._velocities: list[tuple[int, np.ndarray, float]] = []
+        self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity): what the answer waits for
+        self.refused = {"frame": 0, "future": 0, "stale": 0, "not_finite": 0, "malformed": 0}
         self._fresh = threading.Condition(self._lock)  # a correction arrived
         self.latency = LatencyWindow("trigger_to_send_ms")  # the newest correction's trigger -> its increment sent
         self._sent: list[tuple[int, tuple[int, ...]]] = []  # increments sent, not yet published
@@ -109,6 +117,7 @@ class MotoPlusBridgeNode(Node):
         logger = self.get_logger()
         self.client = MotoPlusClient(v["host"], v["port"], self.limits, self._increment, self._on_state,
                                      max_age_s=lambda: self.values["max_age"],
+                                     max_future_s=lambda: self.values["max_future"],
                                      log=lambda text: logger.warn(text, throttle_duration_sec=1.0),
                                      on_sent=self._on_sent, await_correction=self._await_correction)
         if v["arm_on_start"]:
@@ -121,18 +130,32 @@ class MotoPlusBridgeNode(Node):
 
     # ---------------------------------------------------------------- corrections
     def _on_correction(self, serialized: bytes) -> None:
+        received = time.monotonic()
         try:
-            stamp, _, velocity = decode_twist_cdr(serialized)
+            stamp, frame_id, velocity = decode_twist_cdr(serialized)
         except CdrFormatError as exc:
-            self.get_logger().error(f"malformed correction ignored: {exc}", throttle_duration_sec=1.0)
+            self._refuse("malformed", f"malformed correction ignored: {exc}")
+            return
+        if frame_id != self.values["base_frame"]:
+            self._refuse("frame", f"correction in frame '{frame_id}' ignored (base_frame is "
+                                  f"'{self.values['base_frame']}')")
             return
         if not np.all(np.isfinite(velocity)):
-            self.get_logger().error("correction with NaN or inf ignored", throttle_duration_sec=1.0)
+            self._refuse("not_finite", "correction with NaN or inf ignored")
+            return
+        age = time.time() - stamp * 1e-9
+        if not stamp_age_ok(age, self.values["max_age"], self.values["max_future"]):
+            self._refuse("future" if age < 0 else "stale", "correction ignored: "
+                         + describe_age(age, self.values["max_age"], self.values["max_future"]))
             return
         with self._lock:
-            self._velocities.append((stamp, velocity))
+            self._velocities.append((stamp, velocity, received))
             self._latest = (stamp, velocity)
             self._fresh.notify()
+
+    def _refuse(self, why: str, text: str) -> None:
+        self.refused[why] += 1
+        self.get_logger().error(text, throttle_duration_sec=1.0)
 
     def _await_correction(self, state_wall_time: float) -> None:
         """Socket thread: hold this STATE's answer until a correction from this period's measurement is here
@@ -149,19 +172,22 @@ class MotoPlusBridgeNode(Node):
                 self._fresh.wait(remaining)
 
     def _increment(self, now: float) -> tuple[np.ndarray, float] | None:
-        """This period's move (socket thread): the mean velocity commanded during the period times the
-        period, with the newest correction's trigger time; None (a zero increment) when that correction is
-        older than max_age or there is none."""
+        """This period's move (socket thread): the mean velocity of the corrections that arrived since the
+        last answer and are still fresh, by their stamps (two-sided) and by their arrival on this node's
+        monotonic clock, times the period, with the newest one's trigger time. None (a zero increment)
+        when there is none: a correction moves the arm in one period only, so a dead compensator's last
+        word is not repeated."""
         with self._lock:
             received, self._velocities = self._velocities, []
-            latest = self._latest
-        max_age = self.values["max_age"]
-        if latest is None or now - latest[0] * 1e-9 > max_age:
+        v = self.values
+        since = time.monotonic() - v["max_age"]
+        fresh = [(stamp, velocity) for stamp, velocity, arrived in received
+                 if arrived >= since and stamp_age_ok(now - stamp * 1e-9, v["max_age"], v["max_future"])]
+        if not fresh:
             self.stale_periods += 1
             return None
-        fresh = [v for stamp, v in received if now - stamp * 1e-9 <= max_age]  # not what piled up disarmed
-        velocity = np.mean(fresh, axis=0) if fresh else latest[1]
-        return velocity * self.limits.period_s, latest[0] * 1e-9
+        velocity = np.mean([velocity for _, velocity in fresh], axis=0)
+        return velocity * self.limits.period_s, max(stamp for stamp, _ in fresh) * 1e-9
 
     def _on_sent(self, units: tuple[int, ...], stamp: float, sent: float) -> None:
         """Socket thread, right after a moving CORRECTION left: note it; the executor publishes it.
@@ -230,7 +256,8 @@ class MotoPlusBridgeNode(Node):
                   "connections": c.counters.connections, "safety_checked": monitor.checked,
                   "safety_violations": monitor.total_violations,
                   **{f"safety_{name}": count for name, count in monitor.violations.items()},
-                  "last_error": c.last_error or "none", "stale_periods": self.stale_periods}
+                  "last_error": c.last_error or "none", "stale_periods": self.stale_periods,
+                  **{f"refused_{why}": count for why, count in self.refused.items()}}
         if c.last_state is not None:
             values.update({"controller_status": c.last_state.status, "echoed_seq": c.last_state.echoed_seq,
                            "total_offset_um": list(c.last_state.offset[:3])})

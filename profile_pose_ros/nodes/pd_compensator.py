@@ -3,8 +3,12 @@ base frame): a PD law on the Kalman-filtered pose error, through an input shaper
 resonance out of the commands (core/compensator.py); or, with `control_law: modal`, a feedback of the arm
 mode's state that damps the resonance (core/modal_control.py).
 
-A stale pose (older than max_pose_age by its stamp), a missing one (the estimator rejected the profile)
-or no reference gives a zero correction and a diagnostic. Gains change at run time, validated.
+A stale pose (older than max_pose_age by its stamp, or stamped more than max_future ahead), a missing
+one (the estimator rejected the profile) or no reference gives a zero correction and a diagnostic. A pose
+stays usable for what is left of max_pose_age when it arrives, counted on this node's monotonic clock.
+Poses and references in another frame than gauge_frame, or with a quaternion that is not unit length,
+are refused, as is a reference further than max_reference_step from the last. Gains change at run time,
+validated.
 """
 from __future__ import annotations
 
@@ -21,6 +25,7 @@ from rclpy.node import Node
 
 from ..core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base, pd_velocity,
                                 pose_vector_in_base, zvd_impulses)
+from ..core.freshness import describe_age, fresh_until, stamp_age_ok
 from ..core.latency_window import LatencyWindow
 from ..core.modal_control import ModalController, ModalDesign
 from ..core.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
@@ -78,6 +83,14 @@ PARAMETERS = [
     Param("measurement_std", 5e-5, "Pose noise assumed when use_covariance is false (m; rad the same number).",
           1e-7, 1e-2),
     Param("max_pose_age", 0.05, "A pose older than this (by its stamp) is stale: zero correction (s).", 0.001, 1.0),
+    Param("max_future", 0.002, "A pose or reference stamped more than this ahead of this host's clock is refused "
+          "(s): stamps are trigger times, in the past on a healthy cell.", 0.0, 0.1),
+    Param("max_reference_age", 1.0, "A reference_pose stamped longer ago than this is refused (s): an old command "
+          "replayed, or a stamp of 0.", 0.01, 3600.0),
+    Param("max_reference_step", [0.005, 0.005, 0.005, 0.02, 0.02, 0.02], "A reference_pose further than this "
+          "from the current reference (or, for the first one, from the measured pose) on any axis is refused (m, "
+          "rad; base-frame axes)."),
+    Param("gauge_frame", "gauge", "frame_id that poses and references must carry (the gauge frame G)."),
     Param("base_frame", "base", "frame_id of the corrections."),
     Param("watchdog_rate", 100.0, "While the pose is stale (or no reference), how often a zero correction is sent "
           "(Hz). Staleness itself is noticed when the newest pose turns max_pose_age old.", 1.0, 1000.0,
@@ -87,6 +100,7 @@ PARAMETERS = [
 ]
 
 _GAINS = ("kp", "kd", "max_speed")
+QUATERNION_NORM_TOLERANCE = 1e-3  # a unit quaternion's norm, as float32 or float64 messages carry it
 
 
 def modal_controller_from(values: dict) -> ModalController | None:
@@ -124,7 +138,10 @@ class PdCompensatorNode(Node):
         self.anchor: np.ndarray | None = None  # base-frame rotation all rotation vectors are taken from
         self.reference: np.ndarray | None = None  # 6-vector in base coordinates
         self.last_pose_stamp = 0.0
+        self.pose_fresh_until = -math.inf  # time.monotonic() at which the newest pose turns stale
+        self.last_measured: np.ndarray | None = None  # the newest pose, base coordinates (for the reference check)
         self.poses = self.corrections = self.stale_zeros = 0
+        self.refused = {"stale": 0, "future": 0, "frame": 0, "orientation": 0, "reference": 0}
         self.last_error = np.zeros(6)
         self._lock = threading.Lock()  # composed, poses arrive on another thread than the watchdog's
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -169,11 +186,39 @@ class PdCompensatorNode(Node):
                 self.anchor = anchor
         return pose_vector_in_base(rotation, translation, self.mounting, anchor)
 
+    def _refuse(self, why: str, text: str) -> None:
+        self.refused[why] += 1
+        self.get_logger().error(text, throttle_duration_sec=1.0)
+
     def _on_reference(self, msg: PoseStamped) -> None:
+        v = self.values
+        if msg.header.frame_id != v["gauge_frame"]:
+            self._refuse("reference", f"reference_pose in frame '{msg.header.frame_id}' ignored (gauge_frame is "
+                                      f"'{v['gauge_frame']}')")
+            return
+        q = msg.pose.orientation
+        if not abs(math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w) - 1.0) <= QUATERNION_NORM_TOLERANCE:
+            self._refuse("reference", "reference_pose ignored: its quaternion is not unit length")
+            return
+        age = time.time() - (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+        if not stamp_age_ok(age, v["max_reference_age"], v["max_future"]):
+            self._refuse("reference", "reference_pose ignored: " + describe_age(age, v["max_reference_age"],
+                                                                                v["max_future"]))
+            return
         with self._lock:
             reference = self._vector(msg.pose)
             if not np.isfinite(reference).all():
-                self.get_logger().error("reference_pose with NaN or inf ignored", throttle_duration_sec=1.0)
+                self._refuse("reference", "reference_pose with NaN or inf ignored")
+                return
+            current = self.reference if self.reference is not None else self.last_measured
+            if current is None:
+                self._refuse("reference", "reference_pose ignored: no pose measured yet to check it against")
+                return
+            if np.any(np.abs(reference - current) > np.array(v["max_reference_step"])):
+                self._refuse("reference", f"reference_pose ignored: it moves "
+                                          f"{np.round(np.abs(reference - current), 6).tolist()} from the "
+                                          f"{'current reference' if self.reference is not None else 'measured pose'}"
+                                          f", beyond max_reference_step")
                 return
             self.reference = reference
 
@@ -182,14 +227,27 @@ class PdCompensatorNode(Node):
             self._use_pose(serialized)
 
     def _use_pose(self, serialized: bytes) -> None:
+        received = time.monotonic()
         try:
-            pose_stamp_ns, _, pose, covariance = decode_pose_with_covariance_cdr(serialized)
+            pose_stamp_ns, frame_id, pose, covariance = decode_pose_with_covariance_cdr(serialized)
         except CdrFormatError as exc:
             self.get_logger().error(f"malformed pose ignored: {exc}", throttle_duration_sec=1.0)
             return
+        v = self.values
         stamp = pose_stamp_ns * 1e-9
-        if time.time() - stamp > self.values["max_pose_age"]:
-            return  # stale on arrival: the watchdog sends zeros
+        age = time.time() - stamp
+        if not stamp_age_ok(age, v["max_pose_age"], v["max_future"]):
+            if age < 0 or math.isnan(age):
+                self._refuse("future", "pose ignored: " + describe_age(age, v["max_pose_age"], v["max_future"]))
+            else:
+                self.refused["stale"] += 1  # stale on arrival: the watchdog sends zeros
+            return
+        if frame_id != v["gauge_frame"]:
+            self._refuse("frame", f"pose in frame '{frame_id}' ignored (gauge_frame is '{v['gauge_frame']}')")
+            return
+        if not abs(math.sqrt(sum(c * c for c in pose[3:])) - 1.0) <= QUATERNION_NORM_TOLERANCE:
+            self._refuse("orientation", "pose ignored: its quaternion is not unit length")
+            return
         # a NaN or an inf anywhere survives a sum; checked before any arithmetic, which would warn
         if not math.isfinite(sum(pose) + (covariance.sum() if self.values["use_covariance"] else 0.0)):
             self.get_logger().error("pose with NaN or inf ignored", throttle_duration_sec=1.0)
@@ -205,6 +263,8 @@ class PdCompensatorNode(Node):
                                     throttle_duration_sec=1.0)
             return
         self.last_pose_stamp = stamp
+        self.pose_fresh_until = fresh_until(received, age, v["max_pose_age"])
+        self.last_measured = z
         self.poses += 1
         if self.modal is not None:
             self.modal.update(stamp, z, variance, self.reference)
@@ -236,10 +296,9 @@ class PdCompensatorNode(Node):
             return self._check_staleness()
 
     def _check_staleness(self) -> float:
-        now = time.time()
-        stale_at = self.last_pose_stamp + self.values["max_pose_age"]
-        if self.reference is not None and now <= stale_at:
-            return stale_at + 1e-4
+        now = time.monotonic()
+        if self.reference is not None and now <= self.pose_fresh_until:
+            return self.pose_fresh_until + 1e-4
         # The next fresh pose starts the filter again, not from old motion; nor does old shaped motion
         # come back after a stale spell.
         for state in (self.filter, self.modal, self.shaper):
@@ -253,13 +312,14 @@ class PdCompensatorNode(Node):
         age = time.time() - self.last_pose_stamp if self.last_pose_stamp else float("inf")
         if self.reference is None:
             level, message = WARN, "no reference_pose yet: correction zero"
-        elif age > self.values["max_pose_age"]:
+        elif time.monotonic() > self.pose_fresh_until:
             level, message = WARN, f"pose stale ({age:.3f} s old): correction zero"
         else:
             level, message = OK, "correcting"
         values = {"poses": self.poses, "corrections": self.corrections, "zero_corrections": self.stale_zeros,
                   "pose_age_ms": age * 1e3, "error_um": [round(float(e) * 1e6, 1) for e in self.last_error[:3]],
                   "control_law": self.values["control_law"], "kp": list(self.gains.kp), "kd": list(self.gains.kd),
+                  **{f"refused_{why}": count for why, count in self.refused.items()},
                   **self.latency.report()}
         if self.modal is not None:
             values["poses_within_a_period"] = self.modal.skipped  # not used: one pose a period drives the law

@@ -1,0 +1,44 @@
+"""sim_cell, profiler_driver and pose_estimator, each its own process, started afresh under CPU load and
+with their links dropped: every `profile` and `pose` stamp follows the trigger (tools/stamp_check.py)."""
+from __future__ import annotations
+
+import pytest
+
+from profile_pose_ros.tools.stamp_check import FAULTS, busy_processes, gap_flaws, one_start
+
+PERIOD = 0.012  # sim_cell's default control period, which triggers the profiler
+TOLERANCE = 2e-4
+
+
+def assert_periodic(run: dict) -> None:
+    for topic in ("profiles", "poses"):
+        flaws = gap_flaws(run[topic], PERIOD, TOLERANCE)
+        assert flaws["stamps"] > 50, (topic, flaws, run["driver"])
+        assert flaws["repeated"] == flaws["decreasing"] == flaws["not_whole_periods"] == 0, (topic, flaws,
+                                                                                           run["driver"])
+
+
+@pytest.fixture
+def cpu_load():
+    load = busy_processes(1)
+    yield
+    for process in load:
+        process.kill()
+        process.wait()
+
+
+def test_fresh_starts_under_load_stamp_every_profile_a_whole_number_of_periods_apart(tmp_path, cpu_load) -> None:
+    for start in range(3):
+        assert_periodic(one_start(tmp_path / f"start{start}", 3.0, True, {}, {}))
+
+
+@pytest.mark.parametrize("fault, every, seconds", [("profiler", 100, 5.0), ("mcu", 300, 9.0),
+                                                   ("mcu_reboot", 300, 9.0)])
+def test_stamps_stay_periodic_across_reconnects_and_mcu_restarts(tmp_path, cpu_load, fault, every,
+                                                                 seconds) -> None:
+    run = one_start(tmp_path, seconds, True, {FAULTS[fault]: every}, {})
+    assert_periodic(run)
+    happened = {"profiler": "profiler_closes", "mcu": "mcu_closes", "mcu_reboot": "mcu_reboots"}[fault]
+    assert int(run["cell"][happened]) >= 2, run["cell"]
+    if fault != "profiler":  # each MCU restart forgets the pairing and the clock map: both made again
+        assert int(run["driver"]["pairings"]) >= 3, run["driver"]
