@@ -192,3 +192,26 @@ def test_the_composed_loop_sends_stop_when_its_process_is_terminated(cell, tmp_p
         assert cell.controller.session_end == "STOP", (tmp_path / "container.log").read_text()
     finally:
         processes.stop(process)
+
+
+def test_a_correction_stream_that_stops_ends_the_session_and_its_return_moves_nothing(cell) -> None:
+    """A killed and restarted estimator: the corrections stop, the bridge sends STOP after input_timeout,
+    and when they come back the arm stays still (the controller's own record) until the operator re-arms."""
+    streaming = threading.Event()
+    streaming.set()
+    client = cell.client(lambda now: (np.array([1e-5, 0, 0, 0, 0, 0]), now) if streaming.is_set() else None)
+    client.input_timeout_s = 0.2
+    client.arm()
+    try:
+        assert wait_for(lambda: sum(any(u) for u in cell.applied) >= 5)
+        streaming.clear()
+        assert wait_for(lambda: cell.controller.session_end == "STOP", 5.0), cell.controller.session_end
+        assert client.counters.input_lost == 1 and client.state != ARMED
+        streaming.set()
+        moved_before = len(cell.applied)
+        wait_for(lambda: False, 0.5)
+        assert len(cell.applied) == moved_before, "the controller applied periods without a session"
+        client.arm()
+        assert wait_for(lambda: any(any(u) for u in cell.applied[moved_before:]))
+    finally:
+        client.stop()

@@ -6,7 +6,9 @@ well as on the controller), checked last by core.safety.SafetyMonitor. The answe
 `await_correction(arrival time)` returns: the bridge holds it until the correction measured at this
 STATE's trigger arrives (or a deadline within the period), so that correction moves the robot at the next
 period instead of waiting for the next STATE and a period more. Any fault, protocol error or
-disconnect disarms it, and only another arm() re-arms: it never moves the robot on its own after a fault.
+disconnect disarms it, and so does a correction stream that stops for input_timeout (the estimator or
+the compensator died or stalls): only another arm() re-arms, so neither a fault nor a restarted node
+moves the robot again without the operator.
 It reconnects with back-off; stop() sends STOP.
 """
 from __future__ import annotations
@@ -54,13 +56,14 @@ class BridgeCounters:
     faults: int = 0
     connections: int = 0
     lost_increments: int = 0  # moving answers the controller replaced before applying them (IncrementLedger)
+    input_lost: int = 0  # sessions ended because the corrections stopped coming (re-armed by hand only)
 
 
 class MotoPlusClient:
     def __init__(self, host: str, port: int, limits: SessionLimits,
                  increment: Callable[[float], tuple[np.ndarray, float] | None],
                  on_state: Callable[[mp.State, float], None], max_age_s: Callable[[], float] = lambda: 0.024,
-                 max_future_s: Callable[[], float] = lambda: 0.002,
+                 max_future_s: Callable[[], float] = lambda: 0.002, input_timeout_s: float = 0.5,
                  log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0,
                  on_sent: Callable[[tuple[int, ...], float, float], None] | None = None,
                  await_correction: Callable[[float], None] | None = None) -> None:
@@ -70,6 +73,8 @@ class MotoPlusClient:
         on_sent(units, trigger time, wall time just after the send): each moving CORRECTION as it left;
         await_correction(wall time the STATE arrived): returns when the answer should go out."""
         self.host, self.port, self.limits = host, port, limits
+        self.input_timeout_s = input_timeout_s
+        self._last_input = 0.0  # monotonic: the last period answered from a fresh correction (or the arming)
         self.monitor = SafetyMonitor(mp.metres_to_units(limits.max_step), mp.metres_to_units(limits.max_offset),
                                      max_age_s, max_future_s)
         self.rounding = mp.CarriedRounding()  # to units, each remainder carried into the next increment
@@ -183,6 +188,7 @@ class MotoPlusClient:
             self.on_state(body, arrived)
             if self.state == ARMING and body.status & mp.ARMED:
                 self.state = ARMED
+                self._last_input = now
                 self.ledger.reset(body.offset)
                 return  # the arming STATE: the first CORRECTION answers the next one
             if self.state == ARMED:
@@ -217,6 +223,7 @@ class MotoPlusClient:
         else:
             step, stamp = move
             units = self._limit(self.rounding(step))
+            self._last_input = time.monotonic()
         offset = self.last_state.offset if self.last_state is not None else None
         broken = self.monitor.check(units, self.state == ARMED, stamp, now, offset)
         if broken:
@@ -228,6 +235,12 @@ class MotoPlusClient:
         if broken:
             self.monitor.fault()
             self.disarm(f"safety monitor: {self.monitor.last_violation} (sent zero instead)")
+        elif time.monotonic() - self._last_input > self.input_timeout_s and self.state == ARMED:
+            self.counters.input_lost += 1
+            self.monitor.fault()
+            self.last_error = (f"no fresh correction for {self.input_timeout_s:.2f} s (estimate or compensator "
+                               "stopped); ~/start to re-arm")
+            self.disarm(self.last_error)
 
     def _limit(self, units: tuple[int, ...]) -> tuple[int, ...]:
         """Clamped per cycle, then to what is left of the total offset bound (the controller would FAULT)."""

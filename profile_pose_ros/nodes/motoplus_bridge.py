@@ -58,6 +58,9 @@ PARAMETERS = [
     Param("max_future", 0.002, "A correction stamped more than this ahead of this host's clock moves nothing (s): "
           "stamps are trigger times, in the past on a healthy cell; one from the future comes from a wrong clock "
           "or a rogue publisher.", 0.0, 0.1),
+    Param("input_timeout", 0.5, "Armed, with no fresh correction for this long (the estimator, the driver or the "
+          "compensator stopped, or their data went stale), the bridge sends STOP and stays disarmed until ~/start: "
+          "a restarted node never moves the arm by itself (s).", 0.05, 5.0, read_only=True),
     Param("answer_wait", 0.5, "How long (in periods) a STATE's answer may wait for the correction measured at "
           "that STATE's trigger: it leaves as soon as that arrives, else with the newest one at this deadline. "
           "0 answers at once (the previous period's correction: a period more of loop delay). Past ~0.5 a late "
@@ -118,6 +121,7 @@ class MotoPlusBridgeNode(Node):
         self.client = MotoPlusClient(v["host"], v["port"], self.limits, self._increment, self._on_state,
                                      max_age_s=lambda: self.values["max_age"],
                                      max_future_s=lambda: self.values["max_future"],
+                                     input_timeout_s=v["input_timeout"],
                                      log=lambda text: logger.warn(text, throttle_duration_sec=1.0),
                                      on_sent=self._on_sent, await_correction=self._await_correction)
         if v["arm_on_start"]:
@@ -250,7 +254,7 @@ class MotoPlusBridgeNode(Node):
             level, message = WARN, f"{c.state}: not moving the robot ({c.last_error or 'not armed'})"
         values = {"state": c.state, "states": c.counters.states, "corrections": c.counters.corrections,
                   "zero_corrections": c.counters.zero_corrections, "late_answers": c.counters.late_answers,
-                  "lost_increments": c.counters.lost_increments,
+                  "lost_increments": c.counters.lost_increments, "input_lost": c.counters.input_lost,
                   "clamped": c.counters.clamped,
                   "offset_limited": c.counters.offset_limited, "faults": c.counters.faults,
                   "connections": c.counters.connections, "safety_checked": monitor.checked,

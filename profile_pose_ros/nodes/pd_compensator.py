@@ -304,7 +304,10 @@ class PdCompensatorNode(Node):
         for state in (self.filter, self.modal, self.shaper):
             if state is not None:
                 state.reset()
-        self._publish(np.zeros(6), self.get_clock().now().nanoseconds)
+        # Stamped with the newest pose's trigger time: a zero that says how old its information is. Once
+        # the poses are stale it is stale too, so the bridge sees the stream end and disarms until ~/start
+        # (a zero stamped now would keep a session alive that a restarted estimator then moves again).
+        self._publish(np.zeros(6), int(self.last_pose_stamp * 1e9))
         self.stale_zeros += 1
         return now + 1.0 / self.values["watchdog_rate"]
 

@@ -63,6 +63,7 @@ class Fault:
     clear: Callable[["FaultRun"], None]
     must_stop: bool  # it takes away the data or the session: the robot must stop within STOP_PERIODS
     rearm: bool = False  # it ends the robot session: the operator re-arms once it has cleared
+    input_lost: bool = False  # it stops the corrections: the bridge ends the session after input_timeout
     session_end: str = ""  # how the controller must see the session end, if it does (e.g. STOP)
 
 
@@ -75,17 +76,19 @@ FAULTS = (
           must_stop=True, rearm=True),
     Fault("STATE 30 ms late", _sim(state_delay_ms=30.0), _sim(state_delay_ms=0.0), must_stop=False),
     Fault("half the STATEs dropped", _sim(state_drop_fraction=0.5), _sim(state_drop_fraction=0.0), must_stop=False),
-    Fault("profiler stalls (no frames)", _sim(drop_fraction=1.0), _sim(drop_fraction=0.0), must_stop=True),
+    Fault("profiler stalls (no frames)", _sim(drop_fraction=1.0), _sim(drop_fraction=0.0), must_stop=True,
+          rearm=True, input_lost=True),
     Fault("every profiler frame with a flipped bit", _sim(corrupt_fraction=1.0, corrupt_mode="flip"),
-          _sim(corrupt_fraction=0.0, corrupt_mode="mixed"), must_stop=True),
+          _sim(corrupt_fraction=0.0, corrupt_mode="mixed"), must_stop=True, rearm=True, input_lost=True),
     Fault("30 % of profiler frames damaged (mixed)", _sim(corrupt_fraction=0.3), _sim(corrupt_fraction=0.0),
           must_stop=False),
     Fault("profiler connection closed every 20 frames", _sim(close_after_frames=20), _sim(close_after_frames=0),
           must_stop=False),
     Fault("glints on 2 % of points", _sim(spike_fraction=0.02), _sim(spike_fraction=0.0), must_stop=False),
-    Fault("trigger MCU silent", _sim(mcu_silent=True), _sim(mcu_silent=False), must_stop=True),
+    Fault("trigger MCU silent", _sim(mcu_silent=True), _sim(mcu_silent=False), must_stop=True, rearm=True,
+          input_lost=True),
     Fault("pose_estimator SIGKILL, restarted", lambda run: run.graph.kill("pose_estimator"),
-          lambda run: run.graph.restart("pose_estimator"), must_stop=True),
+          lambda run: run.graph.restart("pose_estimator"), must_stop=True, rearm=True, input_lost=True),
     Fault("motoplus_bridge SIGKILL, restarted", lambda run: run.graph.kill("motoplus_bridge"),
           lambda run: run.restart_bridge(), must_stop=True, rearm=True),
     Fault("motoplus_bridge SIGTERM, restarted", lambda run: run.graph.kill("motoplus_bridge", signal.SIGTERM),
@@ -104,6 +107,7 @@ class FaultRun:
         self.period = self.exp.period
         self.max_step = np.array(_DEFAULTS["max_step"])
         self.max_age = float(_DEFAULTS["max_age"])
+        self.input_timeout = float(_DEFAULTS["input_timeout"])
         self.applied: list[tuple[float, np.ndarray]] = []
         self.moving_corrections: list[float] = []
         graph.node.create_subscription(TwistStamped, "/sim/robot_increment", self._on_applied, 1000)
@@ -116,7 +120,7 @@ class FaultRun:
 
     def _on_correction(self, msg) -> None:
         """A non-zero correction is stamped with the trigger time of the pose it was computed from (the
-        compensator's zeros for a stale pose are stamped with their own time and move nothing)."""
+        compensator's zeros for a stale pose carry the newest pose's time and move nothing)."""
         if np.any(twist_vector(msg.twist) != 0.0):
             self.moving_corrections.append(stamp_ns(msg.header.stamp) * 1e-9)
 
@@ -203,8 +207,10 @@ class FaultRun:
                 newest = fresh[k - 1] if k else -np.inf
                 stale += int(t - newest > self.max_age + self.period + SCHEDULING_SLACK_S)
         session_before_rearm = 0
-        if fault.rearm and t_rearm is not None:
-            session_before_rearm = sum(1 for t, _ in window if t_inject + 2 * self.period < t < t_rearm)
+        if fault.rearm and t_rearm is not None:  # the bridge ends a session whose input stopped after input_timeout
+            ends_by = t_inject + 2 * self.period + SCHEDULING_SLACK_S + (
+                self.max_age + self.input_timeout if fault.input_lost else 0.0)
+            session_before_rearm = sum(1 for t, _ in window if ends_by < t < t_rearm)
         errors = self._pose_errors(t_inject, t_end)
         bad_poses = sum(e > BAD_POSE_M for e in errors)
         last_fault = self.graph.diagnostic("sim_cell", "robot_last_fault", "none")  # latched: new in this episode?
