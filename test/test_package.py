@@ -44,6 +44,10 @@ def test_colcon_build_installs_ros2_run_layout(tmp_path):
     # What `ros2 run profile_pose_ros pose_estimator` would do after sourcing the workspace: the installed
     # executable starts, and finds the shipped gauge through the ament index (here: refuses a bad one).
     site = next((prefix / "lib").glob("python3*/site-packages"))
+    # every source module is installed (a folder without __init__.py was skipped by find_packages, and an
+    # editable venv hid that: sim_cell could not start from a colcon install)
+    for module in sorted((ROOT / "profile_pose_ros").rglob("*.py")):
+        assert (site / module.relative_to(ROOT)).is_file(), f"{module.relative_to(ROOT)} is not installed"
     env = dict(os.environ, AMENT_PREFIX_PATH=str(prefix), PYTHONPATH=str(site))
     run = subprocess.run([str(prefix / "lib" / "profile_pose_ros" / "pose_estimator"), "--ros-args", "-p",
                           "gauge_file:=/nonexistent/gauge.yaml"], capture_output=True, text=True, timeout=60,
