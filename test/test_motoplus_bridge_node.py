@@ -32,6 +32,7 @@ def test_arms_on_request_moves_on_fresh_corrections_only_and_rearms_after_a_faul
     bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
         Parameter("port", value=controller), Parameter("max_age", value=0.1),
         Parameter("watchdog", value=2.0),  # this test is not about the watchdog: ride out a loaded CI machine
+        Parameter("input_timeout", value=5.0),  # nor about a lost stream (test_safety.py): its stale spell stays armed
         Parameter("diagnostics_period", value=0.2)]))
     client = ros.node("operator")
     corrections = client.create_publisher(TwistStamped, "correction", 10)
@@ -47,8 +48,8 @@ def test_arms_on_request_moves_on_fresh_corrections_only_and_rearms_after_a_faul
         msg.twist.linear.x = velocity
         corrections.publish(msg)
 
-    # connected but disarmed: corrections move nothing
-    assert ros.spin_until(lambda: bridge.client.state == "connected", 30.0), bridge.client.last_error
+    # disarmed: no connection held (the controller's one slot stays free), corrections move nothing
+    assert ros.spin_until(lambda: bridge.client.state == "disarmed", 30.0), bridge.client.last_error
     ros.spin_until(lambda: False, 0.2, action=lambda: send(0.01))
     assert bridge.client.counters.corrections == 0 and not states
 
@@ -65,13 +66,13 @@ def test_arms_on_request_moves_on_fresh_corrections_only_and_rearms_after_a_faul
     assert abs(x() - held) < 2e-6 and bridge.client.counters.zero_corrections > 10, (
         [round(s.pose.position.x * 1e6, 1) for s in states[-45:]], vars(bridge.client.counters))
 
-    # the controller ends the session: the bridge disarms, reconnects, and waits for ~/start
+    # the controller ends the session: the bridge disarms, lets the connection go, and waits for ~/start
     sim = AsyncParameterClient(client, "sim_cell")
     assert sim.wait_for_services(timeout_sec=10.0)
     fault = sim.set_parameters([Parameter("disconnect_after_periods", value=1)])
     # as long as the first connection is given: a clean-clone CI run in a slow spell of the VM missed 10 s
-    assert ros.spin_until(lambda: fault.done() and bridge.client.counters.connections >= 2
-                          and bridge.client.state == "connected", 30.0), (
+    assert ros.spin_until(lambda: fault.done() and bridge.client.counters.faults >= 1
+                          and bridge.client.state == "disarmed", 30.0), (
         fault.done(), bridge.client.state, bridge.client.last_error, vars(bridge.client.counters))
     before = len(states)
     ros.spin_until(lambda: False, 0.3, action=lambda: send(0.01))
@@ -129,7 +130,7 @@ def test_one_rogue_correction_moves_the_arm_one_period_at_most(ros, controller, 
     from 1970 or in another frame none."""
     bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
         Parameter("port", value=controller), Parameter("watchdog", value=2.0), Parameter("arm_on_start", value=True),
-        Parameter("diagnostics_period", value=60.0)]))
+        Parameter("input_timeout", value=5.0), Parameter("diagnostics_period", value=60.0)]))
     rogue = ros.node("rogue")
     corrections = rogue.create_publisher(TwistStamped, "correction", 10)
     applied: list[tuple[float, ...]] = []

@@ -126,3 +126,54 @@ def test_arm_model_reproduces_table_iv_open_loop() -> None:
             peak = np.maximum(peak, arm.position)
         overshoot = 100 * (peak[:3] - size) / size
         np.testing.assert_allclose(overshoot, expected, rtol=0.02)
+
+
+def hello_with(**changes) -> mp.Hello:
+    fields = dict(period_us=12000, max_step=(100,) * 6, max_offset=(3000,) * 6, watchdog_ms=300)
+    fields.update(changes)
+    return mp.Hello(**fields)
+
+
+@pytest.mark.parametrize("hello, said", [
+    (hello_with(max_step=(2 ** 31 - 1,) * 6), "max_step[0]"),
+    (hello_with(max_offset=(100, 100, 100, 100, 100, 2 ** 31 - 1)), "max_offset[5]"),
+    (hello_with(max_step=(0,) * 6), "max_step[0] = 0"),  # zero is refused, not read as "no limit"
+    (hello_with(watchdog_ms=2 ** 32 - 1), "watchdog_ms"),
+    (hello_with(watchdog_ms=1), "watchdog_ms"),
+    (hello_with(period_us=4000), "period"),
+])
+def test_a_hello_beyond_the_controllers_own_limits_is_refused_and_moves_nothing(controller, hello, said) -> None:
+    client = Client(controller.port)
+    client.send(hello)
+    fault = client.next(mp.Fault)
+    assert fault.body.code in (mp.FAULT_LIMIT, mp.FAULT_PROTOCOL) and said in fault.body.text, fault.body.text
+    assert controller.session is None and not np.any(controller.correction)
+
+
+def test_a_second_hello_cannot_widen_the_clamp_mid_session(controller) -> None:
+    client = armed(controller)
+    client.send(hello_with(max_step=(200,) * 6))
+    assert "second HELLO" in client.next(mp.Fault).body.text
+    assert controller.session is None
+
+
+def test_the_session_runs_on_the_narrower_of_the_hello_and_the_controller(controller) -> None:
+    """The HELLO asks for 100 units; the controller allows 200 um and 573 (1e-3 rad): 100 it is."""
+    client = armed(controller)
+    client.next()
+    client.send(mp.Correction((10_000,) * 6))
+    state = client.next()
+    for _ in range(3):
+        if any(state.body.offset):
+            break
+        state = client.next()
+    assert state.body.offset == (100,) * 6 and state.body.status & mp.CLAMPED
+
+
+def test_an_idle_connection_is_closed_within_a_second_and_frees_the_slot(controller) -> None:
+    idle = Client(controller.port)
+    opened = time.monotonic()
+    with pytest.raises(ConnectionError):
+        idle.next(timeout=3.0)
+    assert time.monotonic() - opened < 1.5 and controller.idle_closed == 1
+    armed(controller)  # the one slot is free again

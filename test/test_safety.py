@@ -3,6 +3,7 @@ controller (with bugs planted in the client to show the monitor stops them), and
 path of the bridge process."""
 from __future__ import annotations
 
+import dataclasses
 import signal
 import threading
 import time
@@ -16,7 +17,7 @@ from profile_pose_ros.core import motoplus_protocol as mp
 from profile_pose_ros.core.safety import INVARIANTS, SafetyMonitor
 from profile_pose_ros.devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from profile_pose_ros.sim.arm import Arm
-from profile_pose_ros.sim.robot_controller import RobotController
+from profile_pose_ros.sim.robot_controller import DEFAULT_LIMITS, RobotController
 from profile_pose_ros.tools import processes
 from profile_pose_ros.tools.graph import MODULES, ros_params
 
@@ -73,7 +74,10 @@ class Cell:
 
     def __init__(self) -> None:
         self.applied: list[tuple[int, ...]] = []
-        self.controller = RobotController(Arm(), port=0, on_applied=lambda _t, units: self.applied.append(units))
+        # the controller's own watchdog limit raised: the shutdown tests below need a 5 s session watchdog
+        limits = dataclasses.replace(DEFAULT_LIMITS, max_watchdog_ms=10_000)
+        self.controller = RobotController(Arm(), port=0, on_applied=lambda _t, units: self.applied.append(units),
+                                          limits=limits)
         self.controller.start()
 
     def client(self, increment, client_class=MotoPlusClient) -> MotoPlusClient:
@@ -156,7 +160,7 @@ def test_the_bridge_process_sends_stop_on_every_shutdown_path(cell, tmp_path, si
     # watchdog 5 s: the controller must see the lost peer before its watchdog would end the session; with
     # 2 s, one full-suite run on this loaded VM saw the watchdog first (the read thread woke too late).
     command = processes.executable("motoplus_bridge", MODULES["motoplus_bridge"]) + ["--ros-args", *ros_params(
-        {"port": cell.controller.port, "arm_on_start": True, "watchdog": 5.0})]
+        {"port": cell.controller.port, "arm_on_start": True, "watchdog": 5.0, "input_timeout": 5.0})]
     process = processes.start(command, unique_domain_id(), tmp_path / "bridge.log")
     try:
         assert wait_for(lambda: len(cell.applied) > 10, 30.0), (tmp_path / "bridge.log").read_text()
@@ -179,7 +183,7 @@ def test_the_composed_loop_sends_stop_when_its_process_is_terminated(cell, tmp_p
     params = tmp_path / "container.yaml"  # per node: `-p port:=` would give the driver the controller's port
     params.write_text(yaml.safe_dump({
         "/**/motoplus_bridge": {"ros__parameters": {"port": cell.controller.port, "arm_on_start": True,
-                                                    "watchdog": 5.0}},
+                                                    "watchdog": 5.0, "input_timeout": 5.0}},
         "/**/profiler_driver": {"ros__parameters": {"port": free_port()}}}))  # no profiler: it retries
     command = processes.executable("cell_container", MODULES["cell_container"]) + [
         "--ros-args", "--params-file", str(params)]

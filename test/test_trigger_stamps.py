@@ -8,13 +8,16 @@ from profile_pose_ros.tools.stamp_check import FAULTS, busy_processes, gap_flaws
 
 PERIOD = 0.012  # sim_cell's default control period, which triggers the profiler
 TOLERANCE = 2e-4
+# The clock map's bound covers its offset, not its slope's extrapolation (up to ~0.05 ms seen in the first
+# seconds under load): a driver trusting stamps to 0.15 ms keeps every gap within 0.2 ms on a busy CI runner.
+DRIVER = {"max_stamp_error": 1.5e-4}
 
 
 def assert_periodic(run: dict) -> None:
     for topic in ("profiles", "poses"):
         flaws = gap_flaws(run[topic], PERIOD, TOLERANCE)
         assert flaws["stamps"] > 50, (topic, flaws, run["driver"])
-        assert flaws["repeated"] == flaws["decreasing"] == flaws["not_whole_periods"] == 0, (topic, flaws,
+        assert flaws["repeated"] == flaws["decreasing"] == flaws["not_whole_periods"] == 0, (topic, str(flaws),
                                                                                            run["driver"])
 
 
@@ -29,14 +32,14 @@ def cpu_load():
 
 def test_fresh_starts_under_load_stamp_every_profile_a_whole_number_of_periods_apart(tmp_path, cpu_load) -> None:
     for start in range(3):
-        assert_periodic(one_start(tmp_path / f"start{start}", 3.0, True, {}, {}))
+        assert_periodic(one_start(tmp_path / f"start{start}", 3.0, True, {}, DRIVER))
 
 
 @pytest.mark.parametrize("fault, every, seconds", [("profiler", 100, 5.0), ("mcu", 300, 9.0),
                                                    ("mcu_reboot", 300, 9.0)])
 def test_stamps_stay_periodic_across_reconnects_and_mcu_restarts(tmp_path, cpu_load, fault, every,
                                                                  seconds) -> None:
-    run = one_start(tmp_path, seconds, True, {FAULTS[fault]: every}, {})
+    run = one_start(tmp_path, seconds, True, {FAULTS[fault]: every}, DRIVER)
     assert_periodic(run)
     happened = {"profiler": "profiler_closes", "mcu": "mcu_closes", "mcu_reboot": "mcu_reboots"}[fault]
     assert int(run["cell"][happened]) >= 2, run["cell"]

@@ -25,7 +25,9 @@ from ..core import motoplus_protocol as mp
 from ..core.increment_ledger import IncrementLedger
 from ..core.safety import SafetyMonitor
 
-DISCONNECTED, CONNECTED, ARMING, ARMED = "disconnected", "connected", "arming", "armed"
+# disarmed: no session wanted, no connection (the controller closes one that does not arm within a second);
+# disconnected: a session wanted, the connection not (yet) up; then connected, arming, armed.
+DISARMED, DISCONNECTED, CONNECTED, ARMING, ARMED = "disarmed", "disconnected", "connected", "arming", "armed"
 # An answer leaving later than this share of the period after its STATE carries no motion: it could reach
 # the controller after its next period, be applied a period later, and so move on a correction older than
 # max_age + one period (the stop bound). The bridge's hold (answer_wait <= 0.7) leaves before it.
@@ -82,7 +84,7 @@ class MotoPlusClient:
         self.await_correction = await_correction
         self.increment, self.on_state, self.log = increment, on_state, log
         self.backoff_min, self.backoff_max = backoff_min, backoff_max
-        self.state = DISCONNECTED
+        self.state = DISARMED
         self.last_error = ""
         self.last_fault: tuple[int, str] = (0, "")
         self.last_state: mp.State | None = None
@@ -112,11 +114,12 @@ class MotoPlusClient:
         self._arm_requested.set()
 
     def disarm(self, reason: str) -> None:
-        """Send STOP and hold still until arm() is called again."""
+        """Send STOP and hold still until arm() is called again. The state changes before STOP leaves, so
+        the socket thread reads the controller's closing the session as the end it asked for, not a loss."""
         self._arm_requested.clear()
         if self.state in (ARMED, ARMING):
-            self._send(mp.Stop())
             self.state = CONNECTED
+            self._send(mp.Stop())
         self.log(f"disarmed: {reason}")
 
     def stop(self) -> None:
@@ -132,6 +135,11 @@ class MotoPlusClient:
     def _run(self) -> None:
         backoff = self.backoff_min
         while not self._stop.is_set():
+            if not self._arm_requested.is_set():  # connect only to arm: an idle client would hold the
+                self.state = DISARMED              # controller's one slot
+                self._arm_requested.wait(0.05)
+                continue
+            self.state = DISCONNECTED
             try:
                 sock = socket.create_connection((self.host, self.port), timeout=1.0)
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -151,7 +159,7 @@ class MotoPlusClient:
                 self.counters.faults += 1
                 self.log(f"session lost ({self.last_error}); disarmed until ~/start")
             self._close()
-            self.state = DISCONNECTED
+            self.state = DISCONNECTED if self._arm_requested.is_set() else DISARMED
             if self._stop.is_set():
                 return
             self._stop.wait(backoff)
@@ -161,6 +169,8 @@ class MotoPlusClient:
         reader = mp.FrameReader()
         sock.settimeout(0.05)
         while not self._stop.is_set():
+            if not self._arm_requested.is_set() and self.state == CONNECTED:
+                return  # disarmed (STOP sent, or the controller's FAULT): leave the slot free
             if self._arm_requested.is_set() and self.state == CONNECTED:
                 self.state = ARMING
                 self._send(self.limits.hello())

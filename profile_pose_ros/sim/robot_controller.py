@@ -17,6 +17,7 @@ from typing import Callable
 import numpy as np
 
 from ..core import motoplus_protocol as mp
+from ..core.controller_limits import HELLO_TIMEOUT_S, ControllerLimits, HelloRefused, SessionBounds
 from .arm import Arm
 from .peer_server import PeerServer
 
@@ -31,9 +32,14 @@ class ControllerFaults:
     disconnect_after_periods: int = 0  # close the session after this many armed periods (0: never); once
 
 
+DEFAULT_LIMITS = ControllerLimits.from_si(max_step=[2e-4] * 3 + [1e-3] * 3, max_offset=[5e-3] * 3 + [2e-2] * 3,
+                                          max_speed=[0.05] * 3 + [0.25] * 3, max_watchdog_s=2.0)
+
+
 @dataclass
 class Session:
     hello: mp.Hello
+    bounds: SessionBounds
     armed_at: float
     last_seq: int
     last_frame: float
@@ -46,10 +52,12 @@ class Session:
 class RobotController:
     def __init__(self, arm: Arm, on_period: Callable[[int], None] | None = None, host: str = "127.0.0.1",
                  port: int = 0, period_ticks: int = 3, faults: ControllerFaults | None = None,
-                 seed: int = 3, on_applied: Callable[[float, tuple[int, ...]], None] | None = None) -> None:
+                 seed: int = 3, on_applied: Callable[[float, tuple[int, ...]], None] | None = None,
+                 limits: ControllerLimits = DEFAULT_LIMITS) -> None:
         """on_applied(wall time, increment in units): every armed period, what the arm was told to move
         (zeros when it held): the ground truth the safety checks compare the bridge against."""
         self.arm = arm
+        self.limits = limits  # the controller's own: a HELLO may narrow them, never widen them
         self.on_period = on_period
         self.on_applied = on_applied
         self.period_ticks = period_ticks
@@ -61,6 +69,7 @@ class RobotController:
         self.last_fault: tuple[int, str] = (0, "")
         self.faults_raised = 0
         self.clamped = 0
+        self.idle_closed = 0  # connections closed for sending no HELLO within HELLO_TIMEOUT_S
         self.replaced = 0  # CORRECTIONs overwritten by a newer one before a period applied them: lost motion
         self.states_sent = 0
         self.session_end = ""  # why the last session ended: STOP, a FAULT, the peer leaving, a test's disconnect
@@ -123,7 +132,7 @@ class RobotController:
                 return
             session.periods += 1
             now = time.monotonic()
-            if now - session.last_frame > session.hello.watchdog_ms * 1e-3:
+            if now - session.last_frame > session.bounds.watchdog_ms * 1e-3:
                 self._fault(mp.FAULT_WATCHDOG, f"no frame for {now - session.last_frame:.3f} s")
                 return
             limit = self.faults.disconnect_after_periods
@@ -157,9 +166,9 @@ class RobotController:
         seq, correction = session.pending
         session.pending = None
         session.periods_without = 0
-        step, cut = mp.clamp(correction.increment, session.hello.max_step)
+        step, cut = mp.clamp(correction.increment, session.bounds.max_step)
         total = self.correction + np.array(step)
-        bound = np.array(session.hello.max_offset)
+        bound = np.array(session.bounds.max_offset)
         if np.any(np.abs(total) > bound):
             self._fault(mp.FAULT_LIMIT, f"total offset {total.tolist()} beyond {bound.tolist()}")
             return (0,) * 6
@@ -189,9 +198,16 @@ class RobotController:
 
     def _read_loop(self, conn: socket.socket) -> None:
         reader = mp.FrameReader()
+        hello_by = time.monotonic() + HELLO_TIMEOUT_S
+        armed_once = False
         while not self._stop.is_set():
+            if not armed_once and time.monotonic() > hello_by:  # an idle peer must not hold the only slot
+                with self._lock:
+                    self.idle_closed += 1
+                    self.session_end = f"no HELLO within {HELLO_TIMEOUT_S:g} s of connecting"
+                break
             try:
-                conn.settimeout(0.2)
+                conn.settimeout(0.1)
                 data = conn.recv(4096)
             except (TimeoutError, socket.timeout):
                 continue
@@ -209,6 +225,7 @@ class RobotController:
                 with self._lock:
                     if not self._handle(frame):
                         break
+                    armed_once = armed_once or self.session is not None
         with self._lock:
             if self.server.peer is conn:
                 if self.session is not None:  # the peer went away: disarmed, holding still
@@ -221,11 +238,19 @@ class RobotController:
         now = time.monotonic()
         body = frame.body
         if isinstance(body, mp.Hello):
+            if self.session is not None:
+                self._fault(mp.FAULT_PROTOCOL, "a second HELLO in one session (limits are set once, at arming)")
+                return False
             if body.period_us != int(round(self.period_s * 1e6)):
                 self._fault(mp.FAULT_PROTOCOL, f"HELLO asks for a {body.period_us} us period; this controller runs "
                                                f"{int(round(self.period_s * 1e6))} us")
                 return False
-            self.session = Session(body, now, frame.seq, now)
+            try:
+                bounds = self.limits.session(body, int(round(self.period_s * 1e6)))
+            except HelloRefused as exc:
+                self._fault(mp.FAULT_LIMIT, str(exc))
+                return False
+            self.session = Session(body, bounds, now, frame.seq, now)
             self._seq += 1
             self._send(mp.Frame(self._seq, frame.seq, mp.State(0, mp.metres_to_units(self.arm.position),
                                                                 tuple(int(v) for v in self.correction), mp.ARMED)))

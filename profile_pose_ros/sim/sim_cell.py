@@ -12,6 +12,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.time import Time
 
+from ..core.controller_limits import ControllerLimits
 from ..core.gauge import Gauge, GaugeError
 from ..core.motoplus_protocol import units_to_metres
 from ..core.render import DEFAULT_PROFILER
@@ -82,6 +83,14 @@ PARAMETERS = [
           read_only=True),
     Param("program_offset", [0.0] * 6, "The robot program's target offset from the start pose (m, rad); "
           "setting it is a step command."),
+    Param("controller_max_step", [2e-4] * 3 + [1e-3] * 3, "The controller's own per-period clamp (m, rad): a "
+          "HELLO may ask for less, never more.", read_only=True),
+    Param("controller_max_offset", [5e-3] * 3 + [2e-2] * 3, "The controller's own bound on the total offset "
+          "(m, rad).", read_only=True),
+    Param("controller_max_speed", [0.05] * 3 + [0.25] * 3, "The controller's own speed limit (m/s, rad/s): also "
+          "bounds each period's step.", read_only=True),
+    Param("controller_max_watchdog", 2.0, "The longest watchdog a HELLO may ask for (s).", 0.01, 10.0,
+          read_only=True),
     Param("state_delay_ms", 0.0, "Fault: every STATE this much late (ms).", 0.0, 10000.0),
     Param("state_drop_fraction", 0.0, "Fault: fraction of STATE frames not sent.", 0.0, 1.0),
     Param("disconnect_after_periods", 0, "Fault: end the controller session after N armed periods (0: never).",
@@ -138,8 +147,11 @@ class SimCellNode(Node):
             if abs(ticks * TICK_S - v["control_period"]) > 1e-9:
                 raise ValueError(f"control_period {v['control_period']} is not a multiple of the 4 ms clock")
             on_period = self.cell.robot_signal if v["profiler_trigger"] == "robot" else None
+            limits = ControllerLimits.from_si(v["controller_max_step"], v["controller_max_offset"],
+                                              v["controller_max_speed"], v["controller_max_watchdog"])
             self.robot = RobotController(arm, on_period, v["host"], v["robot_port"], ticks,
-                                         ControllerFaults(), seed=v["seed"] + 3, on_applied=self._publish_applied)
+                                         ControllerFaults(), seed=v["seed"] + 3, on_applied=self._publish_applied,
+                                         limits=limits)
         self._apply_faults(v)
         self.truth_pub = self.create_publisher(PoseStamped, "/sim/ground_truth", 100)
         self.applied_pub = self.create_publisher(TwistStamped, "/sim/robot_increment", 100)
@@ -223,7 +235,7 @@ class SimCellNode(Node):
             r = self.robot
             values.update({"robot_port": r.port, "robot_armed": r.session is not None, "robot_states": r.states_sent,
                            "robot_faults": r.faults_raised, "robot_last_fault": r.last_fault[1] or "none",
-                           "robot_clamped": r.clamped, "robot_corrections_replaced": r.replaced,
+                           "robot_clamped": r.clamped, "robot_idle_connections_closed": r.idle_closed, "robot_corrections_replaced": r.replaced,
                            "robot_session_end": r.session_end or "none",
                            "arm_offset_um": [round(x * 1e6, 1) for x in r.arm.position[:3]]})
         self.diagnostics_pub.publish(diagnostic_array(self, "cell",

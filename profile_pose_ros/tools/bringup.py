@@ -83,8 +83,9 @@ class Bringup:
         rates = [f"{n} rate report" for n in ("profiler_driver", "pose_estimator")
                  if g.reported(n) and not float(g.diagnostic(n, "rate_hz", "0") or 0) > 0]
         bridge = g.diagnostic("motoplus_bridge", "state", "")
-        connected = bridge in ("connected", "arming", "armed")
-        link = [] if connected else [f"robot controller link ({bridge or 'no report'})"]
+        # disarmed, the bridge holds no connection (the controller's one slot stays free until ~/start)
+        up = bridge in ("disarmed", "connected", "arming", "armed")
+        link = [] if up else [f"robot controller link ({bridge or 'no report'})"]
         return nodes + topics + rates + link
 
     def wait_ready(self, timeout: float) -> float:

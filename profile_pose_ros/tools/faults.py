@@ -135,11 +135,11 @@ class FaultRun:
         self.graph.restart("motoplus_bridge")
 
     def rearm(self) -> float:
-        """The operator: once the bridge reports it is connected (and not armed), ~/start."""
+        """The operator: once the bridge reports it is disarmed (and holds no connection), ~/start."""
         self.graph.forget("motoplus_bridge")
-        if not self.graph.spin_until(lambda: self.graph.diagnostic("motoplus_bridge", "state") == "connected",
+        if not self.graph.spin_until(lambda: self.graph.diagnostic("motoplus_bridge", "state") == "disarmed",
                                      30.0):
-            raise RuntimeError("the bridge did not reconnect to the controller")
+            raise RuntimeError("the bridge did not come back disarmed")
         requested = time.time()
         self.exp.bridge(arm=True)
         return requested

@@ -92,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
                         "control_period")
     parser.add_argument("--tolerance-ms", type=float, default=0.2, help="allowed distance of a gap from a whole "
                         "number of periods")
+    parser.add_argument("--max-stamp-error", type=float, help="the driver's max_stamp_error (s; default: its own)")
     parser.add_argument("--out", default="runs", help="where the run's directory goes")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "stamp-check")
@@ -102,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     results, rows = [], []
     try:
         for start in range(args.starts):
-            run = one_start(out / f"start{start:03d}", args.seconds, not args.no_estimator, cell_params, {})
+            driver_params = {} if args.max_stamp_error is None else {"max_stamp_error": args.max_stamp_error}
+            run = one_start(out / f"start{start:03d}", args.seconds, not args.no_estimator, cell_params, driver_params)
             checks = {topic: gap_flaws(run[topic], args.period, args.tolerance_ms * 1e-3)
                       for topic in ("profiles", "poses") if run[topic]}
             results.append({"start": start, "checks": checks, "driver": run["driver"], "cell": run["cell"]})
