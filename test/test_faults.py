@@ -7,8 +7,8 @@ from profile_pose_ros.tools import faults
 
 def test_faults_on_the_running_loop_break_no_invariant_and_clear(tmp_path) -> None:
     results = {r["fault"]: r for r in faults.run(83.333, "corners", tmp_path, [
-        "ends the session", "stalls", "flipped bit", "SIGTERM"])}
-    assert len(results) == 4
+        "ends the session", "stalls", "flipped bit", "SIGTERM", "stamped +1 h", "rogue controller"])}
+    assert len(results) == 7
     for name, r in results.items():
         assert not any(r["violations"].values()), (name, r["violations"])
         assert r["recovered"], name
@@ -16,3 +16,8 @@ def test_faults_on_the_running_loop_break_no_invariant_and_clear(tmp_path) -> No
     assert results["every profiler frame with a flipped bit"]["poses_during_fault"] == 0
     assert results["controller ends the session mid-motion"]["moving_periods_during_fault"] == 0
     assert results["motoplus_bridge SIGTERM, restarted"]["session_end"] == "STOP"
+    # the adversarial class: a rogue on the domain after the legitimate source died, stray TCP peers
+    for name in ("compensator SIGKILL, then one correction stamped +1 h",
+                 "estimator SIGKILL, then one pose stamped +1 h, 1 m off",
+                 "rogue controller peers: a second client, extreme and repeated HELLOs, an idle socket"):
+        assert results[name]["moving_periods_during_fault"] == 0 and results[name]["ok"], results[name]

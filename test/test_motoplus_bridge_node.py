@@ -136,7 +136,8 @@ def test_one_rogue_correction_moves_the_arm_one_period_at_most(ros, controller, 
     applied: list[tuple[float, ...]] = []
     rogue.create_subscription(TwistStamped, "/sim/robot_increment",
                               lambda m: applied.append((m.twist.linear.x, m.twist.linear.y)), 1000)
-    assert ros.spin_until(lambda: bridge.client.armed and len(applied) > 5, 30.0), bridge.client.last_error
+    assert ros.spin_until(lambda: bridge.client.armed and len(applied) > 5
+                          and corrections.get_subscription_count() > 0, 30.0), bridge.client.last_error
     offset = {"one correction": 0.0, "stamped an hour ahead": 3600.0, "stamped 3 ms ahead": 0.003,
               "in another frame": 0.0, "stamped in 1970": -time.time() + 1.0}[case]
     msg = TwistStamped()

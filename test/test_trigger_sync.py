@@ -223,3 +223,16 @@ def test_matcher_refuses_a_pairing_the_last_count_contradicts() -> None:
     matcher.add_trigger(1, 2.0)
     matcher.note_profile(503)
     assert matcher.offset == 502 and matcher.trigger_time(503) == 2.0
+
+
+def test_clock_map_refuses_a_bound_below_the_samples_own_height() -> None:
+    """A PONG paired with a later PING than the one it answered claims a round trip shorter than its delay;
+    its height above the map (never below the truth) gives it away, and the bound is not taken."""
+    clock = ClockMap()
+    device, arrival, host = simulated_samples(100.0, 3.0, 0.0)
+    for d, a, h in zip(device, arrival, host):
+        clock.add(d, a, a - h + 1e-6)  # true claims: each line's own delay
+    assert clock.bounds_refused == 0
+    good = clock.error_bound
+    clock.add(device[-1] + 0.01, arrival[-1] + 0.01 + 0.3, 1e-5)  # 300 ms late, claiming 10 us
+    assert clock.bounds_refused == 1 and clock.error_bound == good

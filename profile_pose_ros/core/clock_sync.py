@@ -115,6 +115,7 @@ class ClockMap:
         self._fit: tuple[float, float] | None = None  # (intercept, slope) relative to _ref
         self._fitted_at = -np.inf
         self.resets = 0
+        self.bounds_refused = 0
 
     def reset(self) -> None:
         self._samples.clear()
@@ -157,6 +158,11 @@ class ClockMap:
             self.reset()  # the device restarted or its clock was set: start over
             self._ref = (device_s, host_s)
         d, h = device_s - self._ref[0], host_s - self._ref[1]
+        if delay_bound < float("inf") and self._fit is not None and h - (self._fit[0] + self._fit[1] * d) > delay_bound:
+            # Its height above the map is at most its true delay (the map is never below the truth): a
+            # bound below that height is false, e.g. a PONG paired with a later PING than it answered.
+            self.bounds_refused += 1
+            delay_bound = float("inf")
         self._samples.append(d, h, self.window_s)
         if delay_bound < float("inf"):  # a sliding-window minimum: drop the bounds this one beats
             while self._bounds and self._bounds[-1][1] >= delay_bound:

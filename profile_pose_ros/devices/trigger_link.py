@@ -28,7 +28,7 @@ KERNEL_STAMP = struct.Struct("qq")  # struct timespec (64-bit Linux)
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
 READY_WINDOW_S = 1.0  # a READY this soon after our RESET or our opening the port is the expected one
 CONVERGING_PING_PERIOD = 0.02  # s: ping faster until the clock map has a few seconds of samples
-PONG_TIMEOUT_S = 1.0  # an unanswered PING this old is lost (the MCU answers within milliseconds)
+PONG_TIMEOUT_S = 0.5  # an unanswered PING this old is lost (the MCU answers within milliseconds)
 
 
 class TriggerLink:
@@ -142,7 +142,9 @@ class TriggerLink:
         pings = 0
         while not self._stop.is_set():
             now = time.monotonic()
-            if self.state == CONNECTING and pings < self.training_pings and now - last_ping > 0.005:
+            if not self._may_ping():
+                pass
+            elif self.state == CONNECTING and pings < self.training_pings and now - last_ping > 0.005:
                 self._write("PING")  # train the clock map before the first trigger needs it
                 pings, last_ping = pings + 1, now
             elif now - last_ping > (self.ping_period if self.clock.converged else CONVERGING_PING_PERIOD):
@@ -200,9 +202,7 @@ class TriggerLink:
         sent_at = arrival - self._transmission(len(line) + 1)
         delay_bound = float("inf")
         if isinstance(message, Pong):
-            while self._pings and sent_at - self._pings[0] > PONG_TIMEOUT_S:
-                self._pings.popleft()  # its PONG was lost: pairing the next PONG with it would overstate
-            if self._pings:            # every round trip from then on
+            if self._pings:
                 ping_sent = self._pings.popleft()
                 delay_bound = sent_at - ping_sent - self._transmission(len("PING\n"))
                 self._round_trips.append(delay_bound)
@@ -224,6 +224,15 @@ class TriggerLink:
         elif isinstance(message, McuError):
             self.mcu_errors += 1
             self.last_error = f"MCU: {message.text}"
+
+    def _may_ping(self) -> bool:
+        """One PING at a time: a PONG carries no number, so with several outstanding a lost PONG (an MCU
+        gone silent) would pair every later PONG with an earlier PING, for good. One unanswered for
+        PONG_TIMEOUT_S is taken as lost."""
+        if self._pings and time.time() - self._pings[-1] < PONG_TIMEOUT_S:
+            return False
+        self._pings.clear()
+        return True
 
     def _forget_device(self) -> None:
         self._unwrap.reset()

@@ -70,6 +70,7 @@ class RobotController:
         self.faults_raised = 0
         self.clamped = 0
         self.idle_closed = 0  # connections closed for sending no HELLO within HELLO_TIMEOUT_S
+        self.sessions_ended = 0
         self.replaced = 0  # CORRECTIONs overwritten by a newer one before a period applied them: lost motion
         self.states_sent = 0
         self.session_end = ""  # why the last session ended: STOP, a FAULT, the peer leaving, a test's disconnect
@@ -230,6 +231,7 @@ class RobotController:
             if self.server.peer is conn:
                 if self.session is not None:  # the peer went away: disarmed, holding still
                     self.session_end = "the bridge disconnected"
+                    self.sessions_ended += 1
                 self.session = None
                 self.server.drop(conn)
 
@@ -291,5 +293,6 @@ class RobotController:
 
     def _end_session(self, reason: str) -> None:
         self.session_end = reason
+        self.sessions_ended += 1
         self.session = None
         self.server.drop()

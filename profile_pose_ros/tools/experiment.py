@@ -124,6 +124,7 @@ class Experiment:
         if bag is not None:  # first, so that it has subscribed before the others publish
             graph.start("bag_recorder", {"output": str(bag), "compression": "zstd", "diagnostics_period": 0.5})
         profiler_port, mcu_port, robot_port = free_port(), free_port(), free_port()
+        self.robot_port = robot_port
         sim = {"profiler_port": profiler_port, "mcu_port": mcu_port, "robot_port": robot_port,
                "control_period": period, "noise_std": noise_std, "seed": seed, "diagnostics_period": 0.5}
         gauge = {"gauge_file": gauge_file} if gauge_file else {}

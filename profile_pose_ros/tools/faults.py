@@ -16,6 +16,7 @@ the data or the session.
 from __future__ import annotations
 
 import argparse
+import copy
 import signal
 import subprocess
 import sys
@@ -64,6 +65,8 @@ class Fault:
     must_stop: bool  # it takes away the data or the session: the robot must stop within STOP_PERIODS
     rearm: bool = False  # it ends the robot session: the operator re-arms once it has cleared
     input_lost: bool = False  # it stops the corrections: the bridge ends the session after input_timeout
+    hold_s: float = HOLD_S  # how long the fault lasts before it is cleared
+    check: Callable[["FaultRun"], str] | None = None  # a fault's own expectation: "" if met, else what went wrong
     session_end: str = ""  # how the controller must see the session end, if it does (e.g. STOP)
 
 
@@ -97,6 +100,54 @@ FAULTS = (
 )
 
 
+def _kill_then(node: str, publish: Callable[["FaultRun"], None]) -> Callable[["FaultRun"], None]:
+    def inject(run: "FaultRun") -> None:
+        run.graph.kill(node)
+        publish(run)
+    return inject
+
+
+def _restart(node: str) -> Callable[["FaultRun"], None]:
+    """Start a killed node again; its predecessor's reports no longer count."""
+    def clear(run: "FaultRun") -> None:
+        run.graph.forget(node)
+        run.graph.restart(node)
+    return clear
+
+
+def _signal(node: str, signum: int) -> Callable[["FaultRun"], None]:
+    return lambda run: run.graph.processes[node].send_signal(signum)
+
+
+# The adversarial class: what a rogue process on the DDS domain, a wrong clock or a stray TCP peer can do.
+# Judged like the rest by the controller's record of what it applied, on its own clock.
+ADVERSARIAL = (
+    Fault("compensator SIGKILL, then one correction stamped +1 h",
+          _kill_then("pd_compensator", lambda run: run.rogue_correction(ahead_s=3600.0)),
+          _restart("pd_compensator"), must_stop=True, rearm=True, input_lost=True),
+    Fault("compensator SIGKILL, then corrections stamped in 1970",
+          _kill_then("pd_compensator", lambda run: run.rogue_correction(ahead_s=-time.time() + 1.0, count=20)),
+          _restart("pd_compensator"), must_stop=True, rearm=True, input_lost=True),
+    Fault("estimator SIGKILL, then one pose stamped +1 h, 1 m off",
+          _kill_then("pose_estimator", lambda run: run.rogue_pose(ahead_s=3600.0, offset_m=1.0)),
+          lambda run: run.graph.restart("pose_estimator"), must_stop=True, rearm=True, input_lost=True),
+    Fault("rogue reference 1 m away, and one stamped +1 h", lambda run: run.rogue_references(), lambda run: None,
+          must_stop=False, check=lambda run: run.references_refused(2)),
+    Fault("trigger MCU silent 5 s, profiles 150 ms late", _sim(mcu_silent=True, delay_ms=150.0),
+          _sim(mcu_silent=False, delay_ms=0.0), must_stop=True, rearm=True, input_lost=True, hold_s=5.0),
+    *(Fault(f"{node} SIGSTOP 2 s", _signal(node, signal.SIGSTOP), _signal(node, signal.SIGCONT), must_stop=True,
+            rearm=True, input_lost=True, hold_s=2.0)
+      for node in ("profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge")),
+    Fault("profiler_driver SIGKILL, restarted", lambda run: run.graph.kill("profiler_driver"),
+          lambda run: run.graph.restart("profiler_driver"), must_stop=True, rearm=True, input_lost=True),
+    Fault("pd_compensator SIGKILL, restarted", lambda run: run.graph.kill("pd_compensator"),
+          _restart("pd_compensator"), must_stop=True, rearm=True, input_lost=True),
+    Fault("rogue controller peers: a second client, extreme and repeated HELLOs, an idle socket",
+          lambda run: run.rogue_peers(), lambda run: None, must_stop=True, rearm=True,
+          check=lambda run: run.rogue_peer_problems),
+)
+
+
 class FaultRun:
     def __init__(self, graph: Graph, rate_hz: float, refine_model: str, control_law: str) -> None:
         from geometry_msgs.msg import TwistStamped
@@ -112,17 +163,119 @@ class FaultRun:
         self.moving_corrections: list[float] = []
         graph.node.create_subscription(TwistStamped, "/sim/robot_increment", self._on_applied, 1000)
         graph.node.create_subscription(TwistStamped, "correction", self._on_correction, 1000)
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+
+        # made before any fault, so that DDS has matched them when a rogue message is sent
+        self._rogue_correction = graph.node.create_publisher(TwistStamped, "correction", 10)
+        self._rogue_pose = graph.node.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
+        self._refused_before = 0
+        self.rogue_peer_problems = ""
         self._hogs: list[subprocess.Popen] = []
         self._sign = 1.0
+        self._target = np.zeros(3)
 
     def _on_applied(self, msg) -> None:
         self.applied.append((stamp_ns(msg.header.stamp) * 1e-9, twist_vector(msg.twist)))
 
     def _on_correction(self, msg) -> None:
         """A non-zero correction is stamped with the trigger time of the pose it was computed from (the
-        compensator's zeros for a stale pose carry the newest pose's time and move nothing)."""
-        if np.any(twist_vector(msg.twist) != 0.0):
-            self.moving_corrections.append(stamp_ns(msg.header.stamp) * 1e-9)
+        compensator's zeros for a stale pose carry the newest pose's time and move nothing). One stamped
+        in the future (a rogue's) vouches for nothing."""
+        stamp = stamp_ns(msg.header.stamp) * 1e-9
+        if np.any(twist_vector(msg.twist) != 0.0) and stamp <= time.time() + 0.002:
+            self.moving_corrections.append(stamp)
+
+    # ---------------------------------------------------------------- a rogue on the domain, a stray peer
+    def rogue_correction(self, ahead_s: float, count: int = 1) -> None:
+        from geometry_msgs.msg import TwistStamped
+        from rclpy.time import Time
+
+        for _ in range(count):
+            msg = TwistStamped()
+            msg.header.stamp = Time(nanoseconds=int((time.time() + ahead_s) * 1e9)).to_msg()
+            msg.header.frame_id = "base"
+            msg.twist.linear.x = 0.01  # 10 mm/s: 120 um a period, under the clamp
+            self._rogue_correction.publish(msg)
+            self.exp.wait(0.005)
+
+    def rogue_pose(self, ahead_s: float, offset_m: float) -> None:
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        from rclpy.time import Time
+
+        msg = PoseWithCovarianceStamped()
+        msg.header.stamp = Time(nanoseconds=int((time.time() + ahead_s) * 1e9)).to_msg()
+        msg.header.frame_id = "gauge"
+        msg.pose.pose = copy.deepcopy(self.exp.last_pose)
+        msg.pose.pose.position.x += offset_m
+        msg.pose.covariance = list(np.diag([1e-10] * 3 + [1e-8] * 3).ravel())
+        self._rogue_pose.publish(msg)
+
+    def rogue_references(self) -> None:
+        from rclpy.time import Time
+
+        from ..nodes.messages import pose_stamped
+
+        rotation, position = self.exp.home
+        self._refused_before = int(self.graph.diagnostic("pd_compensator", "refused_reference", "0") or 0)
+        now = self.graph.node.get_clock().now()
+        self.exp.reference_pub.publish(pose_stamped(rotation, position + [1.0, 0.0, 0.0], now.to_msg(), "gauge"))
+        ahead = Time(nanoseconds=now.nanoseconds + 3600 * 10 ** 9).to_msg()
+        self.exp.reference_pub.publish(pose_stamped(rotation, position + [0.0, 2e-4, 0.0], ahead, "gauge"))
+
+    def references_refused(self, expected: int) -> str:
+        self.graph.forget("pd_compensator")
+        self.graph.spin_until(lambda: self.graph.reported("pd_compensator"), 5.0)
+        refused = int(self.graph.diagnostic("pd_compensator", "refused_reference", "0") or 0) - self._refused_before
+        return "" if refused >= expected else f"the compensator refused {refused} of {expected} rogue references"
+
+    def rogue_peers(self) -> None:
+        """While the bridge is armed a second client is turned away; then, the bridge stopped, a rogue
+        arms with limits of 2^31-1 (refused), one that asks within them sends a second, wider HELLO (a
+        FAULT), and an idle socket is closed within the HELLO deadline."""
+        import socket as sockets
+
+        from ..core import motoplus_protocol as mp
+
+        problems = []
+        port = self.exp.robot_port
+
+        def answer(sock, frames: list, timeout: float = 2.0) -> list:
+            sock.settimeout(timeout)
+            reader = mp.FrameReader()
+            got = []
+            try:
+                if frames:  # in one write: the controller reads them together, so no period falls between
+                    sock.sendall(b"".join(mp.encode(frame) for frame in frames))
+                while True:
+                    data = sock.recv(4096)
+                    if not data:
+                        return got + ["closed"]
+                    got += [f.body for f in reader.feed(data)]
+            except (TimeoutError, sockets.timeout):
+                return got + ["open"]
+            except OSError:
+                return got + ["closed"]
+
+        hello = lambda step, seq=1: mp.Frame(seq, 0, mp.Hello(int(round(self.period * 1e6)), (step,) * 6,  # noqa
+                                                               (min(step * 10, 2 ** 31 - 1),) * 6, 500))
+        with sockets.create_connection(("127.0.0.1", port), timeout=2.0) as second:
+            if answer(second, [hello(2 ** 31 - 1)])[-1] != "closed":
+                problems.append("a second client was not turned away while the bridge was armed")
+        self.exp.bridge(arm=False)
+        with sockets.create_connection(("127.0.0.1", port), timeout=2.0) as rogue:
+            got = answer(rogue, [hello(2 ** 31 - 1)])
+            if not any(isinstance(b, mp.Fault) and b.code == mp.FAULT_LIMIT for b in got) or got[-1] != "closed":
+                problems.append(f"a HELLO of 2^31-1 was not refused: {got}")
+        with sockets.create_connection(("127.0.0.1", port), timeout=2.0) as rogue:
+            got = answer(rogue, [hello(10), hello(200, seq=2)])
+            if not any(isinstance(b, mp.Fault) and b.code == mp.FAULT_PROTOCOL for b in got):
+                problems.append(f"a second, wider HELLO was not refused: {got}")
+        with sockets.create_connection(("127.0.0.1", port), timeout=2.0) as idle:
+            opened = time.monotonic()
+            got = answer(idle, [], timeout=3.0)
+            if got[-1] != "closed" or time.monotonic() - opened > 1.5:
+                problems.append(f"an idle socket was held {time.monotonic() - opened:.2f} s ({got[-1]})")
+        self.rogue_peer_problems = "; ".join(problems)
 
     def load(self, processes: int) -> None:
         for hog in self._hogs:
@@ -135,11 +288,22 @@ class FaultRun:
         self.graph.restart("motoplus_bridge")
 
     def rearm(self) -> float:
-        """The operator: once the bridge reports it is disarmed (and holds no connection), ~/start."""
+        """The operator: once the bridge reports it is disarmed (and holds no connection) and poses flow again,
+        sends the target again (a restarted compensator has none) and ~/start. Re-armed before the data is
+        back, the bridge would rightly end the session again for want of corrections."""
         self.graph.forget("motoplus_bridge")
         if not self.graph.spin_until(lambda: self.graph.diagnostic("motoplus_bridge", "state") == "disarmed",
                                      30.0):
             raise RuntimeError("the bridge did not come back disarmed")
+        cleared = time.time()
+        if not self.graph.spin_until(lambda: self.exp.poses and self.exp.poses[-1][0] > cleared, 60.0):
+            raise RuntimeError("no fresh pose after the fault cleared")
+        measured = lambda: int(self.graph.diagnostic("pd_compensator", "poses", "0") or 0) > 0  # noqa: E731
+        if not self.graph.spin_until(measured, 30.0):  # a restarted one takes a target only once it has a pose
+            raise RuntimeError("the compensator has no pose after the fault cleared")
+        for _ in range(3):  # a restarted compensator's subscription may not have matched the first
+            self.exp.reference(self._target)
+            self.exp.wait(0.05)
         requested = time.time()
         self.exp.bridge(arm=True)
         return requested
@@ -149,15 +313,17 @@ class FaultRun:
 
     def episode(self, fault: Fault) -> dict:
         self._sign = -self._sign
-        self.exp.reference(np.array([self._sign * STEP_M, 0.0, 0.0]))
+        self._target = np.array([self._sign * STEP_M, 0.0, 0.0])
+        self.exp.reference(self._target)
         self.exp.wait(MID_MOTION_S)
         monitor_before = self._monitor_violations()
-        end_before = self.graph.diagnostic("sim_cell", "robot_session_end", "none")
+        ended_before = self.graph.diagnostic("sim_cell", "robot_sessions_ended", "0")
         fault_before = self.graph.diagnostic("sim_cell", "robot_last_fault", "none")
         fault.inject(self)
         t_inject = time.time()  # in effect: sim_cell has applied the parameter, or the killed process has exited
-        self.exp.wait(HOLD_S)
+        self.exp.wait(fault.hold_s)
         session_end = self.graph.diagnostic("sim_cell", "robot_session_end", "none")
+        ended = self.graph.diagnostic("sim_cell", "robot_sessions_ended", "0")
         t_clear = time.time()
         fault.clear(self)
         t_rearm = self.rearm() if fault.rearm else None
@@ -168,8 +334,11 @@ class FaultRun:
         self.exp.wait(IN_FLIGHT_S)  # what was published before t_end reaches this client before it judges
         result = self._evaluate(fault, t_inject, t_clear, t_rearm, resume, t_end, recovered, monitor_before,
                                 fault_before)
-        result["session_end"] = session_end if session_end != end_before else "-"
+        result["session_end"] = session_end if ended != ended_before else "-"
         if fault.session_end and session_end != fault.session_end:
+            result["ok"] = False
+        result["expectation"] = fault.check(self) if fault.check is not None else ""
+        if result["expectation"]:
             result["ok"] = False
         return result
 
@@ -240,7 +409,7 @@ class FaultRun:
 
 def run(rate_hz: float, refine_model: str, out, names: list[str] | None = None,
         control_law: str = CELL_CONTROL_LAW) -> list[dict]:
-    faults = [f for f in FAULTS if names is None or any(n.lower() in f.name.lower() for n in names)]
+    faults = [f for f in FAULTS + ADVERSARIAL if names is None or any(n.lower() in f.name.lower() for n in names)]
     graph = Graph(out / "logs", client_name="profile_pose_faults")
     results = []
     fault_run = None
