@@ -125,6 +125,8 @@ class MotoPlusClient:
     def stop(self) -> None:
         """STOP to the controller, then close (every shutdown path ends here)."""
         self._arm_requested.clear()
+        if self.state in (ARMED, ARMING):
+            self.state = CONNECTED  # before STOP leaves: the close that follows is the end asked for
         self._send(mp.Stop())
         self._stop.set()
         self._close()

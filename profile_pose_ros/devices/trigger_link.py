@@ -34,7 +34,7 @@ PONG_TIMEOUT_S = 0.5  # an unanswered PING this old is lost (the MCU answers wit
 class TriggerLink:
     def __init__(self, url: str, baudrate: int, on_trigger: Callable[[int, float, float], None],
                  on_resync_needed: Callable[[str], None], trigger_latency: float = AUTO_LATENCY,
-                 ping_period: float = 0.25, silent_after: float = 1.0, training_pings: int = 20,
+                 ping_period: float = 0.05, silent_after: float = 1.0, training_pings: int = 20,
                  reopen_delay: float = 0.5) -> None:
         self.url, self.baudrate = url, baudrate
         self.on_trigger, self.on_resync_needed = on_trigger, on_resync_needed

@@ -320,6 +320,7 @@ class PdCompensatorNode(Node):
         else:
             level, message = OK, "correcting"
         values = {"poses": self.poses, "corrections": self.corrections, "zero_corrections": self.stale_zeros,
+                  "has_reference": self.reference is not None,
                   "pose_age_ms": age * 1e3, "error_um": [round(float(e) * 1e6, 1) for e in self.last_error[:3]],
                   "control_law": self.values["control_law"], "kp": list(self.gains.kp), "kd": list(self.gains.kd),
                   **{f"refused_{why}": count for why, count in self.refused.items()},

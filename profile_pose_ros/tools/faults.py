@@ -170,6 +170,7 @@ class FaultRun:
         self._rogue_pose = graph.node.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
         self._refused_before = 0
         self.rogue_peer_problems = ""
+        self.fresh_corrections: list[float] = []  # when a correction the bridge would take arrived here
         self._hogs: list[subprocess.Popen] = []
         self._sign = 1.0
         self._target = np.zeros(3)
@@ -182,8 +183,11 @@ class FaultRun:
         compensator's zeros for a stale pose carry the newest pose's time and move nothing). One stamped
         in the future (a rogue's) vouches for nothing."""
         stamp = stamp_ns(msg.header.stamp) * 1e-9
-        if np.any(twist_vector(msg.twist) != 0.0) and stamp <= time.time() + 0.002:
+        now = time.time()
+        if np.any(twist_vector(msg.twist) != 0.0) and stamp <= now + 0.002:
             self.moving_corrections.append(stamp)
+        if 0.0 <= now - stamp <= self.max_age:
+            self.fresh_corrections.append(now)
 
     # ---------------------------------------------------------------- a rogue on the domain, a stray peer
     def rogue_correction(self, ahead_s: float, count: int = 1) -> None:
@@ -301,9 +305,17 @@ class FaultRun:
         measured = lambda: int(self.graph.diagnostic("pd_compensator", "poses", "0") or 0) > 0  # noqa: E731
         if not self.graph.spin_until(measured, 30.0):  # a restarted one takes a target only once it has a pose
             raise RuntimeError("the compensator has no pose after the fault cleared")
-        for _ in range(3):  # a restarted compensator's subscription may not have matched the first
+        self.graph.forget("pd_compensator")  # a restarted one's subscription may not have matched the first
+        has_target = lambda: self.graph.diagnostic("pd_compensator", "has_reference") == "True"  # noqa: E731
+        for _ in range(50):
             self.exp.reference(self._target)
-            self.exp.wait(0.05)
+            if self.graph.spin_until(has_target, 0.2):
+                break
+        # and the chain correcting on time again (a restarted node's first poses can come late), as the
+        # compensator's status would tell an operator: armed earlier, the bridge would end it again
+        live = lambda: sum(t > time.time() - 0.3 for t in self.fresh_corrections[-50:]) >= 10  # noqa: E731
+        if not self.graph.spin_until(live, 30.0):
+            raise RuntimeError("the corrections did not come fresh again after the fault cleared")
         requested = time.time()
         self.exp.bridge(arm=True)
         return requested
