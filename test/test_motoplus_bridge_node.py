@@ -130,7 +130,10 @@ def test_one_rogue_correction_moves_the_arm_one_period_at_most(ros, controller, 
     from 1970 or in another frame none."""
     bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
         Parameter("port", value=controller), Parameter("watchdog", value=2.0), Parameter("arm_on_start", value=True),
-        Parameter("input_timeout", value=5.0), Parameter("diagnostics_period", value=60.0)]))
+        Parameter("input_timeout", value=5.0), Parameter("diagnostics_period", value=60.0),
+        # fresh for 0.1 s: this harness takes the correction within a spin turn of 20 ms or more, and a
+        # correction still fresh for several periods is what shows it moving one of them only
+        Parameter("max_age", value=0.1)]))
     rogue = ros.node("rogue")
     corrections = rogue.create_publisher(TwistStamped, "correction", 10)
     applied: list[tuple[float, ...]] = []
