@@ -95,6 +95,7 @@ class MotoPlusBridgeNode(Node):
         # (stamp ns, velocity, monotonic receive time) of the corrections since the last increment
         self._velocities: list[tuple[int, np.ndarray, float]] = []
         self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity): what the answer waits for
+        self._latest_arrival = -np.inf  # time.monotonic() when it came
         self.refused = {"frame": 0, "future": 0, "stale": 0, "not_finite": 0, "malformed": 0}
         self._fresh = threading.Condition(self._lock)  # a correction arrived
         self.latency = LatencyWindow("trigger_to_send_ms")  # the newest correction's trigger -> its increment sent
@@ -154,7 +155,7 @@ class MotoPlusBridgeNode(Node):
             return
         with self._lock:
             self._velocities.append((stamp, velocity, received))
-            self._latest = (stamp, velocity)
+            self._latest, self._latest_arrival = (stamp, velocity), received
             self._fresh.notify()
 
     def _refuse(self, why: str, text: str) -> None:
@@ -226,6 +227,16 @@ class MotoPlusBridgeNode(Node):
 
     # ---------------------------------------------------------------- services
     def _on_start(self, _request, response):
+        """Arm only while the loop is live: armed without fresh corrections, the session would end again
+        after input_timeout (a node restarted a moment ago, or one whose subscription has not matched)."""
+        with self._lock:
+            latest, arrived = self._latest, self._latest_arrival
+        v = self.values
+        if latest is None or time.monotonic() - arrived > v["max_age"] or not stamp_age_ok(
+                time.time() - latest[0] * 1e-9, v["max_age"], v["max_future"]):
+            response.success = False
+            response.message = "not arming: no fresh correction (is the estimator, driver and compensator running?)"
+            return response
         self.client.arm()
         response.success = True
         response.message = f"arming (state: {self.client.state})"
