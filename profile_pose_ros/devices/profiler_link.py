@@ -82,7 +82,7 @@ class ProfilerLink:
         """TriggerLink's callback (its thread). A time the clock map cannot vouch for is kept as NaN: the
         profile of that trigger is then known to be untimed rather than waiting for a line that came."""
         with self._cond:
-            self.matcher.add_trigger(seq, host_time if error_bound <= self.settings.max_stamp_error else math.nan)
+            self.matcher.add_trigger(seq, host_time if self._vouched(error_bound) else math.nan)
             self._cond.notify_all()
 
     def request_resync(self, reason: str) -> None:
@@ -240,8 +240,11 @@ class ProfilerLink:
     @property
     def stamps_trusted(self) -> bool:
         """The next trigger would be stamped: the MCU is up and its clock map bounds the stamp closely."""
-        return (self.trigger is not None and self.trigger.ok
-                and self.trigger.clock.error_bound <= self.settings.max_stamp_error)
+        return self.trigger is not None and self.trigger.ok and self._vouched(self.trigger.clock.error_bound)
+
+    def _vouched(self, error_bound: float) -> bool:
+        """A trigger time the clock map bounds closely enough to stamp a profile with."""
+        return error_bound <= self.settings.max_stamp_error
 
     def _trigger_time(self, trigger_count: int) -> float | None:
         with self._cond:

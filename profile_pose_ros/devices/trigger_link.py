@@ -142,14 +142,13 @@ class TriggerLink:
         pings = 0
         while not self._stop.is_set():
             now = time.monotonic()
-            if not self._may_ping():
-                pass
-            elif self.state == CONNECTING and pings < self.training_pings and now - last_ping > 0.005:
-                self._write("PING")  # train the clock map before the first trigger needs it
-                pings, last_ping = pings + 1, now
-            elif now - last_ping > (self.ping_period if self.clock.converged else CONVERGING_PING_PERIOD):
-                self._write("PING")
-                last_ping = now
+            if self._may_ping():
+                if self.state == CONNECTING and pings < self.training_pings and now - last_ping > 0.005:
+                    self._write("PING")  # train the clock map before the first trigger needs it
+                    pings, last_ping = pings + 1, now
+                elif now - last_ping > (self.ping_period if self.clock.converged else CONVERGING_PING_PERIOD):
+                    self._write("PING")
+                    last_ping = now
             if now - last_line > self.silent_after and self.state in (OK, CONNECTING):
                 self.state = SILENT
                 self.last_error = f"MCU silent for {now - last_line:.1f} s"

@@ -184,15 +184,21 @@ class MotoPlusBridgeNode(Node):
         word is not repeated."""
         with self._lock:
             received, self._velocities = self._velocities, []
-        v = self.values
-        since = time.monotonic() - v["max_age"]
+        mono = time.monotonic()
         fresh = [(stamp, velocity) for stamp, velocity, arrived in received
-                 if arrived >= since and stamp_age_ok(now - stamp * 1e-9, v["max_age"], v["max_future"])]
+                 if self._fresh_at(stamp, arrived, now, mono)]
         if not fresh:
             self.stale_periods += 1
             return None
         velocity = np.mean([velocity for _, velocity in fresh], axis=0)
         return velocity * self.limits.period_s, max(stamp for stamp, _ in fresh) * 1e-9
+
+    def _fresh_at(self, stamp_ns: int, arrived: float, now: float, now_monotonic: float) -> bool:
+        """A correction may still move the arm: its stamp within [-max_future, max_age] of now (wall) and its
+        arrival within max_age of now_monotonic (this node's clock, which no wall-clock step moves)."""
+        v = self.values
+        return (now_monotonic - arrived <= v["max_age"]
+                and stamp_age_ok(now - stamp_ns * 1e-9, v["max_age"], v["max_future"]))
 
     def _on_sent(self, units: tuple[int, ...], stamp: float, sent: float) -> None:
         """Socket thread, right after a moving CORRECTION left: note it; the executor publishes it.
@@ -231,9 +237,7 @@ class MotoPlusBridgeNode(Node):
         after input_timeout (a node restarted a moment ago, or one whose subscription has not matched)."""
         with self._lock:
             latest, arrived = self._latest, self._latest_arrival
-        v = self.values
-        if latest is None or time.monotonic() - arrived > v["max_age"] or not stamp_age_ok(
-                time.time() - latest[0] * 1e-9, v["max_age"], v["max_future"]):
+        if latest is None or not self._fresh_at(latest[0], arrived, time.time(), time.monotonic()):
             response.success = False
             response.message = "not arming: no fresh correction (is the estimator, driver and compensator running?)"
             return response

@@ -103,6 +103,11 @@ _GAINS = ("kp", "kd", "max_speed")
 QUATERNION_NORM_TOLERANCE = 1e-3  # a unit quaternion's norm, as float32 or float64 messages carry it
 
 
+def unit_quaternion(q) -> bool:
+    """Within QUATERNION_NORM_TOLERANCE of unit length (False for NaN): anything else is no orientation."""
+    return abs(math.sqrt(sum(c * c for c in q)) - 1.0) <= QUATERNION_NORM_TOLERANCE
+
+
 def modal_controller_from(values: dict) -> ModalController | None:
     if values["control_law"] == "pd":
         return None
@@ -197,7 +202,7 @@ class PdCompensatorNode(Node):
                                       f"'{v['gauge_frame']}')")
             return
         q = msg.pose.orientation
-        if not abs(math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w) - 1.0) <= QUATERNION_NORM_TOLERANCE:
+        if not unit_quaternion((q.x, q.y, q.z, q.w)):
             self._refuse("reference", "reference_pose ignored: its quaternion is not unit length")
             return
         age = time.time() - (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
@@ -245,7 +250,7 @@ class PdCompensatorNode(Node):
         if frame_id != v["gauge_frame"]:
             self._refuse("frame", f"pose in frame '{frame_id}' ignored (gauge_frame is '{v['gauge_frame']}')")
             return
-        if not abs(math.sqrt(sum(c * c for c in pose[3:])) - 1.0) <= QUATERNION_NORM_TOLERANCE:
+        if not unit_quaternion(pose[3:]):
             self._refuse("orientation", "pose ignored: its quaternion is not unit length")
             return
         # a NaN or an inf anywhere survives a sum; checked before any arithmetic, which would warn

@@ -32,8 +32,10 @@ class ControllerFaults:
     disconnect_after_periods: int = 0  # close the session after this many armed periods (0: never); once
 
 
-DEFAULT_LIMITS = ControllerLimits.from_si(max_step=[2e-4] * 3 + [1e-3] * 3, max_offset=[5e-3] * 3 + [2e-2] * 3,
-                                          max_speed=[0.05] * 3 + [0.25] * 3, max_watchdog_s=2.0)
+# The simulated controller's own limits (SI), unless sim_cell's controller_max_* parameters say otherwise
+DEFAULT_LIMITS_SI = {"max_step": [2e-4] * 3 + [1e-3] * 3, "max_offset": [5e-3] * 3 + [2e-2] * 3,
+                     "max_speed": [0.05] * 3 + [0.25] * 3, "max_watchdog_s": 2.0}
+DEFAULT_LIMITS = ControllerLimits.from_si(**DEFAULT_LIMITS_SI)
 
 
 @dataclass

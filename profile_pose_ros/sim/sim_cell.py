@@ -24,7 +24,7 @@ from ..resources import DEFAULT_GAUGE, config_path
 from .cell import SensorNoise, SimCell, Truth
 from .arm import Arm, ArmModel
 from .motion import ArmMotion, ScriptedMotion, pose_from_vector, steps_from_lists
-from .robot_controller import TICK_S, ControllerFaults, RobotController
+from .robot_controller import DEFAULT_LIMITS_SI, TICK_S, ControllerFaults, RobotController
 from .profiler_device import CORRUPT_MODES, ProfilerDevice, ProfilerFaults
 from .trigger_mcu import McuFaults, TriggerMcu
 
@@ -83,13 +83,14 @@ PARAMETERS = [
           read_only=True),
     Param("program_offset", [0.0] * 6, "The robot program's target offset from the start pose (m, rad); "
           "setting it is a step command."),
-    Param("controller_max_step", [2e-4] * 3 + [1e-3] * 3, "The controller's own per-period clamp (m, rad): a "
+    Param("controller_max_step", DEFAULT_LIMITS_SI["max_step"], "The controller's own per-period clamp (m, rad): a "
           "HELLO may ask for less, never more.", read_only=True),
-    Param("controller_max_offset", [5e-3] * 3 + [2e-2] * 3, "The controller's own bound on the total offset "
+    Param("controller_max_offset", DEFAULT_LIMITS_SI["max_offset"], "The controller's own bound on the total offset "
           "(m, rad).", read_only=True),
-    Param("controller_max_speed", [0.05] * 3 + [0.25] * 3, "The controller's own speed limit (m/s, rad/s): also "
+    Param("controller_max_speed", DEFAULT_LIMITS_SI["max_speed"], "The controller's own speed limit (m/s, rad/s): also "
           "bounds each period's step.", read_only=True),
-    Param("controller_max_watchdog", 2.0, "The longest watchdog a HELLO may ask for (s).", 0.01, 10.0,
+    Param("controller_max_watchdog", DEFAULT_LIMITS_SI["max_watchdog_s"], "The longest watchdog a HELLO may ask "
+          "for (s).", 0.01, 10.0,
           read_only=True),
     Param("state_delay_ms", 0.0, "Fault: every STATE this much late (ms).", 0.0, 10000.0),
     Param("state_drop_fraction", 0.0, "Fault: fraction of STATE frames not sent.", 0.0, 1.0),
