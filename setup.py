@@ -40,6 +40,10 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
+        # the MotoPlus application's sources: sim_cell builds its controller from them
+        (f"share/{PACKAGE}/firmware/motoplus", sorted(glob("firmware/motoplus/*.[ch]") + glob("firmware/motoplus/*.md")
+                                                     + ["firmware/motoplus/Makefile", "firmware/motoplus/vectors.txt"])),
+        (f"share/{PACKAGE}/firmware/motoplus/host", sorted(glob("firmware/motoplus/host/*.[ch]"))),
     ],
     install_requires=["setuptools", "numpy", "scipy", "PyYAML", "numba", "pyserial", "rosbags"],
     extras_require={"benchmark": ["opencv-python-headless"]},

@@ -1,4 +1,4 @@
-"""Where the package's shipped files (config/) are, however it was installed."""
+"""Where the package's shipped files (config/, firmware/) are, however it was installed."""
 from __future__ import annotations
 
 import sys
@@ -7,24 +7,29 @@ from pathlib import Path
 PACKAGE = "profile_pose_ros"
 
 
-def config_path(name: str) -> Path:
-    """A file from config/: colcon share dir, then the pip data_files prefix, then the source tree."""
+def shipped_path(*parts: str) -> Path:
+    """A shipped file or folder (config/..., firmware/...): the colcon share dir, then the pip data_files
+    prefix, then the source tree; the last candidate when none exists."""
     candidates = []
     try:
         from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 
         try:
-            candidates.append(Path(get_package_share_directory(PACKAGE)) / "config" / name)
+            candidates.append(Path(get_package_share_directory(PACKAGE)).joinpath(*parts))
         except (PackageNotFoundError, ValueError, OSError):  # OSError: no AMENT_PREFIX_PATH (pip install)
             pass
     except ImportError:
         pass
-    candidates.append(Path(sys.prefix) / "share" / PACKAGE / "config" / name)
-    candidates.append(Path(__file__).resolve().parent.parent / "config" / name)
+    candidates.append(Path(sys.prefix).joinpath("share", PACKAGE, *parts))
+    candidates.append(Path(__file__).resolve().parent.parent.joinpath(*parts))
     for candidate in candidates:
-        if candidate.is_file():
+        if candidate.exists():
             return candidate
     return candidates[-1]
+
+
+def config_path(name: str) -> Path:
+    return shipped_path("config", name)
 
 
 DEFAULT_GAUGE = "gauge_paper_n5.yaml"

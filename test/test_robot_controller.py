@@ -107,7 +107,7 @@ def test_a_second_peer_is_refused(controller) -> None:
     first = armed(controller)
     second = socket.create_connection(("127.0.0.1", controller.port), timeout=2.0)
     assert second.recv(16) == b""  # closed at once
-    assert first.next().body.status & mp.ARMED and controller.server.refused == 1
+    assert first.next().body.status & mp.ARMED and controller.refused == 1
 
 
 def test_hello_with_the_wrong_period_is_refused(controller) -> None:

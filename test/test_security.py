@@ -17,10 +17,11 @@ from conftest import ROOT
 
 
 def test_every_simulated_device_listens_on_loopback_by_default() -> None:
-    devices = [ProfilerDevice(), TriggerMcu(), RobotController(Arm())]
+    devices = [ProfilerDevice(), TriggerMcu(), RobotController(Arm()).start()]
     try:
         for device in devices:
-            assert device.server.host == "127.0.0.1", type(device).__name__
+            host = device.host if isinstance(device, RobotController) else device.server.host
+            assert host == "127.0.0.1", type(device).__name__
     finally:
         for device in devices:
             device.close()
