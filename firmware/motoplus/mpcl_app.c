@@ -228,12 +228,16 @@ void mpcl_app_read_status(mpcl_app_status *out)
     out->stats = app.session.stats;
     memcpy(out->offset, app.session.offset, sizeof out->offset);
     memcpy(out->period_step, app.period_step, sizeof out->period_step);
+    memcpy(out->session_step, app.session.step, sizeof out->session_step);
+    memcpy(out->session_offset, app.session.offset_bound, sizeof out->session_offset);
+    out->session_watchdog_ms = app.session.watchdog_ms;
     out->periods = app.periods;
     out->cycles = app.cycles;
     out->motion_errors = app.motion_errors;
     out->armed = app.session.armed;
     out->connected = app.session.connected;
     out->configured = app.configured;
+    out->pending = app.session.pending;
     memcpy(out->config_error, app.config_error, sizeof out->config_error);
     mpSemGive(app.lock);
 }

@@ -59,10 +59,14 @@ typedef struct {
     mpcl_stats stats;
     int32_t offset[6];
     int32_t period_step[6];     /* the step of the latest control period, spread over its cycles */
+    int32_t session_step[6];    /* the armed session's bounds: the HELLO's within the controller's */
+    int32_t session_offset[6];
+    uint32_t session_watchdog_ms;
     uint32_t periods;           /* control periods served while armed */
     uint32_t cycles;
     uint32_t motion_errors;     /* mpExRcsIncrementMove refusals */
     int armed, connected, configured;
+    int pending;                /* a CORRECTION waits for the next period */
     char config_error[MPCL_TEXT];
 } mpcl_app_status;
 void mpcl_app_read_status(mpcl_app_status *out);

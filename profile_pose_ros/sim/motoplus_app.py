@@ -36,15 +36,16 @@ def compiler() -> str | None:
     return shutil.which(os.environ.get("CC", "cc"))
 
 
-def build(output: str, sources: tuple[str, ...] = SOURCES, flags: tuple[str, ...] = ("-shared", "-fPIC")) -> Path:
-    """Compiles `sources` (firmware-relative) into the cache, keyed by the sources' and flags' hash; returns
-    the file. Raises RuntimeError with the compiler's message when it fails."""
-    source = firmware_dir()
+def build(output: str, sources: tuple[str, ...] = SOURCES, flags: tuple[str, ...] = ("-shared", "-fPIC"),
+          source: Path | None = None) -> Path:
+    """Compiles `sources` (relative to `source`, the firmware folder by default) into the cache, keyed by
+    the sources' and flags' hash; returns the file. RuntimeError with the compiler's message if it fails."""
+    source = source or firmware_dir()
     cc = compiler()
     if cc is None:
         raise RuntimeError("no C compiler (cc): sim_cell's robot controller is the C application, built on first use")
     digest = hashlib.sha256(" ".join((cc, *FLAGS, *flags)).encode())
-    for name in sorted(set(sources) | set(HEADERS) | {"mpcl.h"}):
+    for name in sorted(set(sources) | set(HEADERS)):
         digest.update(name.encode() + (source / name).read_bytes())
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "profile_pose_ros" / "motoplus"
     target = cache / digest.hexdigest()[:16] / output
@@ -70,8 +71,11 @@ class Stats(ctypes.Structure):
 class Status(ctypes.Structure):
     """mpcl_app_status."""
     _fields_ = [("stats", Stats), ("offset", ctypes.c_int32 * 6), ("period_step", ctypes.c_int32 * 6),
+                ("session_step", ctypes.c_int32 * 6), ("session_offset", ctypes.c_int32 * 6),
+                ("session_watchdog_ms", ctypes.c_uint32),
                 ("periods", ctypes.c_uint32), ("cycles", ctypes.c_uint32), ("motion_errors", ctypes.c_uint32),
                 ("armed", ctypes.c_int), ("connected", ctypes.c_int), ("configured", ctypes.c_int),
+                ("pending", ctypes.c_int),
                 ("config_error", ctypes.c_char * TEXT)]
 
 

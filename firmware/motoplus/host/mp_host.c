@@ -35,6 +35,8 @@ static struct {
     int32_t increment[6];
     uint32_t motion_calls;
     char alarm[256];
+    int virtual_clock;          /* the fuzzer's: mpGetRtc reads virtual_ms */
+    uint32_t virtual_ms;
     double state_drop;
     uint32_t delay_us, fail_after_states, states_sent;
     uint64_t rng;
@@ -326,7 +328,19 @@ STATUS mpClkAnnounce(int clk_id)
 
 ULONG mpGetRtc(void)
 {
+    if (host.virtual_clock) return host.virtual_ms;
     return (ULONG)(now_ns() / 1000000u);
+}
+
+void mph_virtual_clock(uint32_t start_ms)
+{
+    host.virtual_clock = 1;
+    host.virtual_ms = start_ms;
+}
+
+void mph_advance_ms(uint32_t ms)
+{
+    host.virtual_ms += ms;
 }
 
 SEM_ID mpSemBCreate(int options, int initialState)

@@ -29,6 +29,9 @@ int mph_tick(uint32_t timeout_us);
 void mph_take_increment(int32_t out[6], uint32_t *calls);
 uint32_t mph_overruns(void);
 const char *mph_last_alarm(void);
+/* The fuzzer's clock: from now on mpGetRtc reads a time that moves only by mph_advance_ms (no tasks run). */
+void mph_virtual_clock(uint32_t start_ms);
+void mph_advance_ms(uint32_t ms);
 void mph_stop(void);                           /* ends both tasks and closes every socket */
 
 #endif
