@@ -104,6 +104,20 @@ def test_a_configuration_outside_its_ranges_is_refused_with_an_alarm(offset, val
     application.stop()
 
 
+def test_a_peer_from_another_address_is_closed_at_once() -> None:
+    application = HostApplication(configuration(DEFAULT_LIMITS, 3, 0, bridge_address="127.0.0.2"))
+    port = application.start()
+    try:
+        stranger = Client(port)  # from 127.0.0.1
+        with pytest.raises(ConnectionError):
+            stranger.send(HELLO)
+            stranger.next()
+        assert wait_for(lambda: application.status().stats.refused_peers == 1)
+        assert not application.status().armed
+    finally:
+        application.stop()
+
+
 def _sanitizers(tmp_path) -> tuple[str, ...]:
     probe = tmp_path / "probe.c"
     probe.write_text("int main(void) { return 0; }\n")

@@ -11,6 +11,7 @@ typedef struct {
     SEM_ID lock;                /* guards everything below that both tasks touch */
     int listen_fd, peer_fd;
     uint16_t port;
+    uint32_t allowed_peer;      /* IPv4, host order; 0: any */
     uint32_t tick_us, period_cycles, cycles, periods, motion_errors;
     uint64_t clock_us;          /* the interpolation clock's own time: cycles x cycle */
     int32_t period_step[6];     /* this period's step and what is left of it to hand out */
@@ -81,6 +82,7 @@ int mpcl_app_configure(void)
         app.period_cycles = value[19] > 0 && value[19] <= 250 ? (uint32_t)value[19] : 0u;
         limits.period_us = app.period_cycles * app.tick_us;
         app.port = value[20] == 0 ? (uint16_t)MPCL_DEFAULT_PORT : (uint16_t)value[20];
+        app.allowed_peer = (uint32_t)value[22];
         if (value[20] < 0 || value[20] > 65535 || app.tick_us < 500u || app.tick_us > 100000u ||
             app.period_cycles == 0u) {
             snprintf(app.config_error, sizeof app.config_error,
@@ -281,8 +283,11 @@ void mpcl_server_task(int a1, int a2, int a3, int a4, int a5, int a6, int a7, in
         timeout.tv_usec = 20000;  /* the HELLO deadline and a close the clock task asked for, within 20 ms */
         if (mpSelect(width + 1, &readable, NULL, NULL, &timeout) < 0) continue;
         if (FD_ISSET(app.listen_fd, &readable)) {
-            int fd = mpAccept(app.listen_fd, NULL, NULL);
-            if (fd >= 0 && peer >= 0) {  /* one bridge: a second peer is closed at once */
+            struct sockaddr_in from;
+            int length = (int)sizeof from;
+            int fd = mpAccept(app.listen_fd, (struct sockaddr *)&from, &length);
+            int stranger = fd >= 0 && app.allowed_peer != 0u && mpNtohl(from.sin_addr.s_addr) != app.allowed_peer;
+            if (fd >= 0 && (peer >= 0 || stranger)) {  /* one bridge, from its address: others closed at once */
                 mpClose(fd);
                 mpSemTake(app.lock, WAIT_FOREVER);
                 app.session.stats.refused_peers++;

@@ -15,6 +15,7 @@
  *   D[base+19]     control period in interpolation cycles (3: 12 ms on a 4 ms clock)
  *   D[base+20]     TCP port (0: MPCL_DEFAULT_PORT)
  *   D[base+21]     interpolation cycle in us (0: 4000, the YRC1000's)
+ *   D[base+22]     the one bridge address accepted, IPv4 as a number (192.168.1.10: 0xC0A8010A); 0: any
  * A configuration outside mpcl_limits_check's ranges raises an alarm and the application serves nothing.
  */
 #ifndef MPCL_APP_H
@@ -25,7 +26,7 @@
 #ifndef MPCL_CONFIG_D_BASE
 #define MPCL_CONFIG_D_BASE 80
 #endif
-#define MPCL_CONFIG_COUNT 22
+#define MPCL_CONFIG_COUNT 23
 #define MPCL_DEFAULT_PORT 50241
 #define MPCL_DEFAULT_TICK_US 4000u
 #define MPCL_ALARM_CODE 8100        /* user alarm number the application raises on a bad configuration */

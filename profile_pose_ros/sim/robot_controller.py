@@ -9,6 +9,7 @@ per-cycle output (it triggers the profiler at the arm's pose of that instant).
 """
 from __future__ import annotations
 
+import ipaddress
 import threading
 import time
 from dataclasses import dataclass
@@ -37,10 +38,12 @@ DEFAULT_LIMITS_SI = {"max_step": [2e-4] * 3 + [1e-3] * 3, "max_offset": [5e-3] *
 DEFAULT_LIMITS = ControllerLimits.from_si(**DEFAULT_LIMITS_SI)
 
 
-def configuration(limits: ControllerLimits, period_ticks: int, port: int) -> dict[int, int]:
-    """The application's D variables (offsets from MPCL_CONFIG_D_BASE, mpcl_app.h) for these limits."""
+def configuration(limits: ControllerLimits, period_ticks: int, port: int, bridge_address: str = "") -> dict[int, int]:
+    """The application's D variables (offsets from MPCL_CONFIG_D_BASE, mpcl_app.h) for these limits;
+    bridge_address: the one peer it accepts ("": any)."""
+    peer = int(ipaddress.IPv4Address(bridge_address)) if bridge_address else 0
     values = [*limits.max_step, *limits.max_offset, *limits.max_speed, limits.max_watchdog_ms, period_ticks, port,
-              int(round(TICK_S * 1e6))]
+              int(round(TICK_S * 1e6)), peer - 2 ** 32 if peer >= 2 ** 31 else peer]  # D variables are signed
     return dict(enumerate(values))
 
 

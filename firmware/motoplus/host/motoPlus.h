@@ -65,6 +65,7 @@ int mpSetsockopt(int s, int level, int optname, char *optval, int optlen);
 STATUS mpClose(int fd);
 USHORT mpHtons(USHORT hostshort);
 ULONG mpHtonl(ULONG hostlong);
+ULONG mpNtohl(ULONG netlong);
 
 /* ---------------------------------------------------------------- variables, I/O, alarms */
 #define MP_RESTYPE_VAR_D 3        /* the 32-bit integer variables D000.. */

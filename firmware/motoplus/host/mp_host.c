@@ -533,6 +533,11 @@ ULONG mpHtonl(ULONG hostlong)
     return htonl(hostlong);
 }
 
+ULONG mpNtohl(ULONG netlong)
+{
+    return ntohl(netlong);
+}
+
 /* ---------------------------------------------------------------- variables, I/O, alarms, motion */
 
 LONG mpGetVarData(MP_VAR_INFO *sData, LONG *rData, LONG num)

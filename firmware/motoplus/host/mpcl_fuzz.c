@@ -89,6 +89,7 @@ static void choose_config(config *c)
     c->d[19] = (int32_t)c->cycles;
     c->d[20] = 0;
     c->d[21] = TICK_US;
+    c->d[22] = 0;
 }
 
 typedef struct {
