@@ -61,6 +61,13 @@ def decode_pose_with_covariance_cdr(data: bytes) -> tuple[int, str, tuple[float,
     return stamp_ns, frame_id, pose, covariance
 
 
+def encode_pose_with_covariance_cdr(pose, covariance, stamp_ns: int, frame_id: str) -> bytes:
+    """(px py pz qx qy qz qw), 6x6 -> a serialized PoseWithCovarianceStamped, any values (the fuzzer's
+    absurd ones too): the inverse of decode_pose_with_covariance_cdr."""
+    return (stamped(_header(frame_id), *divmod(stamp_ns, 1_000_000_000)) + _POSE.pack(*(float(v) for v in pose))
+            + np.ascontiguousarray(covariance, dtype="<f8").reshape(36).tobytes())
+
+
 def encode_twist_cdr(values, stamp_ns: int, frame_id: str) -> bytes:
     """[vx vy vz wx wy wz] as a serialized TwistStamped (what nodes.messages.twist_stamped builds)."""
     return stamped(_header(frame_id), *divmod(stamp_ns, 1_000_000_000)) + _TWIST.pack(*(float(v) for v in values[:6]))

@@ -1,8 +1,11 @@
-"""profile_pose_fuzz: every decoder and parser of outside input against mutated and random input.
+"""profile_pose_fuzz: every decoder and parser of outside input against mutated and random input, and
+decoded but absurd values through the nodes' own logic.
 
 For each target, valid inputs are encoded, then mutated (bit flips, byte changes, insertions, deletions,
 truncations, splices of two inputs) or replaced by random bytes; the target must either accept the input
-or raise its documented error type. Anything else is counted as unexpected, with the first example.
+or raise its documented error type. Anything else is counted as unexpected, with the first example. The
+node targets (tools/node_fuzz.py) read each case as a pose or reference near a real one with parts pushed
+to an edge, and count as unexpected any motion the raw values say must not happen.
 Deterministic for a seed. CI runs a small budget (test/test_fuzz.py); the default is 100,000 per target.
 """
 from __future__ import annotations
@@ -26,7 +29,7 @@ from ..core.profile_cloud import Field, ProfileFormatError, decode_profile, enco
 from ..core.profiler_protocol import FrameDecoder, ProfilerProtocolError, encode_frame
 from ..core.trigger_protocol import TriggerLineError, format_trigger, parse_line
 from ..resources import DEFAULT_GAUGE, config_path
-from . import c_codec
+from . import c_codec, node_fuzz
 from .c_codec import same_outcome
 
 
@@ -36,6 +39,7 @@ class Target:
     seeds: list[bytes]
     run: Callable[[bytes], object]
     expected: tuple[type[BaseException], ...]
+    close: Callable[[], None] | None = None  # after its cases
 
 
 def mutate(data: bytes, other: bytes, rng: np.random.Generator) -> bytes:
@@ -192,7 +196,36 @@ def targets() -> list[Target]:
                decode_twist_cdr, (CdrFormatError,)),
         Target("gauge files", gauge, _gauge_yaml, (GaugeError,)),
         Target("parameter updates", params, _parameter_updates, (ValueError,)),
-    ] + _c_targets(motoplus)
+    ] + _c_targets(motoplus) + _node_targets()
+
+
+def _node_targets() -> list[Target]:
+    """Decoded values through pd_compensator and motoplus_bridge themselves (tools/node_fuzz.py), when
+    rclpy is importable; the nodes are made at the first case."""
+    try:
+        import rclpy  # noqa: F401
+    except ImportError:
+        return []
+    chain: list[node_fuzz.NodeChain] = []
+
+    def with_chain(case: Callable[[node_fuzz.NodeChain, bytes], None]) -> Callable[[bytes], None]:
+        def run(data: bytes) -> None:
+            if not chain:
+                chain.append(node_fuzz.NodeChain())
+            case(chain[0], data)
+        return run
+
+    def close() -> None:
+        if chain:
+            chain.pop().close()
+
+    seeds = node_fuzz.pose_seeds()
+    return [Target("poses through pd_compensator and motoplus_bridge", seeds,
+                   with_chain(node_fuzz.NodeChain.pose_case), (node_fuzz.Refused,)),
+            Target("references through pd_compensator", seeds, with_chain(node_fuzz.NodeChain.reference_case),
+                   (node_fuzz.Refused,)),
+            Target("corrections through motoplus_bridge", seeds, with_chain(node_fuzz.NodeChain.correction_case),
+                   (node_fuzz.Refused,), close)]
 
 
 def _c_targets(motoplus: list[bytes]) -> list[Target]:
@@ -222,6 +255,8 @@ def fuzz(count: int, seed: int = 1, names: list[str] | None = None) -> list[dict
             except Exception as exc:  # noqa: BLE001 - this is what the fuzzer is looking for
                 if len(unexpected) < 3:
                     unexpected.append(f"{exc!r} for {data[:64]!r}")
+        if target.close is not None:
+            target.close()
         results.append({"target": target.name, "cases": count, "accepted": accepted, "rejected": rejected,
                         "unexpected": count - accepted - rejected, "examples": unexpected,
                         "seconds": time.perf_counter() - start})
