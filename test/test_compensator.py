@@ -167,7 +167,8 @@ def test_kalman_update_equals_the_matrix_form(seed: int) -> None:
                                    rtol=1e-9, atol=1e-20)
 
 
-@pytest.mark.parametrize("damage", ["zero quaternion", "nan position", "inf covariance", "truncated"])
+@pytest.mark.parametrize("damage", ["zero quaternion", "nan position", "inf covariance", "truncated",
+                                    "negative covariance", "zero covariance", "1e300 m away"])
 def test_a_corrupt_pose_moves_nothing_and_the_node_goes_on(ros, damage) -> None:
     from rclpy.serialization import serialize_message
 
@@ -185,11 +186,18 @@ def test_a_corrupt_pose_moves_nothing_and_the_node_goes_on(ros, damage) -> None:
         bad.pose.pose.position.y = float("nan")
     elif damage == "inf covariance":
         bad.pose.covariance[0] = float("inf")
+    elif damage == "negative covariance":  # these two, and the next, poisoned the filter for good (fuzzed)
+        bad.pose.covariance[14] = -1e-10
+    elif damage == "zero covariance":
+        bad.pose.covariance = [0.0] * 36
+    elif damage == "1e300 m away":
+        bad.pose.pose.position.y = 1e300
     data = serialize_message(bad)
     node._on_pose(data[:40] if damage == "truncated" else data)  # the subscription's callback, as DDS calls it
     assert node.poses == 0 and node.corrections == 0  # not taken, nothing sent
     node._on_pose(serialize_message(good))
     assert node.poses == 1 and node.corrections == 1  # and the next good one is
+    assert np.all(np.isfinite(node.last_error))
 
 
 def test_a_corrupt_reference_is_ignored(ros) -> None:

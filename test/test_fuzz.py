@@ -25,3 +25,14 @@ def test_the_node_fuzzer_catches_a_node_without_one_of_its_checks(monkeypatch, m
     monkeypatch.setattr(module, check, lambda *args: True)
     results = fuzz(2000, seed=7, names=[target])
     assert results[0]["unexpected"] > 0, results[0]
+
+
+def test_a_rogue_correction_of_1e300_m_per_s_is_clamped_not_an_overflow() -> None:
+    """Found by the node fuzzer: the bridge's socket thread raised OverflowError turning it into units."""
+    from profile_pose_ros.core import motoplus_protocol as mp
+    from profile_pose_ros.devices.motoplus_client import MotoPlusClient, SessionLimits
+
+    limits = SessionLimits()
+    client = MotoPlusClient("127.0.0.1", 9, limits, lambda now: None, lambda state, t: None)
+    assert client.units_for([1e300, -1e300, 0.0, 1e300, 0.0, 0.0]) == (
+        tuple(int(s * k) for s, k in zip((1, -1, 0, 1, 0, 0), mp.metres_to_units(limits.max_step))))

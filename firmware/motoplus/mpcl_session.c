@@ -1,5 +1,5 @@
-/* mpcl_session: see mpcl_session.h. The rules are those of sim_cell's former Python controller and
- * docs/motoplus_protocol.md; every value from the network is range-checked before it is used. */
+/* mpcl_session: see mpcl_session.h. The rules are docs/motoplus_protocol.md's; every value from the
+ * network is range-checked before it is used. */
 #include "mpcl_session.h"
 
 #include <stdio.h>

@@ -234,7 +234,7 @@ class MotoPlusClient:
             self.counters.zero_corrections += 1
         else:
             step, stamp = move
-            units = self._limit(self.rounding(step))
+            units = self.units_for(step)
             self._last_input = time.monotonic()
         offset = self.last_state.offset if self.last_state is not None else None
         broken = self.monitor.check(units, self.state == ARMED, stamp, now, offset)
@@ -253,6 +253,13 @@ class MotoPlusClient:
             self.last_error = (f"no fresh correction for {self.input_timeout_s:.2f} s (estimate or compensator "
                                "stopped); ~/start to re-arm")
             self.disarm(self.last_error)
+
+    def units_for(self, step) -> tuple[int, ...]:
+        """A period's step (m, rad) as the increment to send: rounded with the carried remainder, clamped,
+        and cut to the offset bound. A step beyond twice the clamp is cut first: it is clamped anyway, and a
+        finite but absurd one (a rogue correction of 1e300 m/s) must not overflow the conversion."""
+        bound = 2.0 * np.asarray(self.limits.max_step, dtype=float)
+        return self._limit(self.rounding(np.clip(np.asarray(step, dtype=float), -bound, bound)))
 
     def _limit(self, units: tuple[int, ...]) -> tuple[int, ...]:
         """Clamped per cycle, then to what is left of the total offset bound (the controller would FAULT)."""

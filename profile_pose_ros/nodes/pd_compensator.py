@@ -83,6 +83,8 @@ PARAMETERS = [
     Param("measurement_std", 5e-5, "Pose noise assumed when use_covariance is false (m; rad the same number).",
           1e-7, 1e-2),
     Param("max_pose_age", 0.05, "A pose older than this (by its stamp) is stale: zero correction (s).", 0.001, 1.0),
+    Param("max_pose_range", 2.0, "A pose further than this from the profiler (m) is refused: no profiler measures "
+          "that far, and a finite but absurd position would overflow the filter.", 0.01, 100.0),
     Param("max_future", 0.002, "A pose or reference stamped more than this ahead of this host's clock is refused "
           "(s): stamps are trigger times, in the past on a healthy cell.", 0.0, 0.1),
     Param("max_reference_age", 1.0, "A reference_pose stamped longer ago than this is refused (s): an old command "
@@ -146,7 +148,7 @@ class PdCompensatorNode(Node):
         self.pose_fresh_until = -math.inf  # time.monotonic() at which the newest pose turns stale
         self.last_measured: np.ndarray | None = None  # the newest pose, base coordinates (for the reference check)
         self.poses = self.corrections = self.stale_zeros = 0
-        self.refused = {"stale": 0, "future": 0, "frame": 0, "orientation": 0, "reference": 0}
+        self.refused = {"stale": 0, "future": 0, "frame": 0, "orientation": 0, "covariance": 0, "range": 0, "reference": 0}
         self.last_error = np.zeros(6)
         self._lock = threading.Lock()  # composed, poses arrive on another thread than the watchdog's
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -257,15 +259,21 @@ class PdCompensatorNode(Node):
         if not math.isfinite(sum(pose) + (covariance.sum() if self.values["use_covariance"] else 0.0)):
             self.get_logger().error("pose with NaN or inf ignored", throttle_duration_sec=1.0)
             return
+        if math.hypot(*pose[:3]) > v["max_pose_range"]:
+            self._refuse("range", f"pose {math.hypot(*pose[:3]):.3g} m from the profiler ignored (max_pose_range "
+                                  f"{v['max_pose_range']:g} m)")
+            return
         rotation = rotation_from_quaternion_xyzw(np.array(pose[3:]))
         z = self._pose_vector(rotation, np.array(pose[:3]))
         if self.values["use_covariance"]:
             variance = covariance_in_base(covariance, self.mounting)
         else:
             variance = np.full(6, self.values["measurement_std"] ** 2)
-        if not math.isfinite(z.sum() + variance.sum()):  # a zero quaternion (no rotation) gives NaN, a vast
-            self.get_logger().error("pose with an invalid orientation or covariance ignored",  # covariance inf
-                                    throttle_duration_sec=1.0)
+        # a zero quaternion (no rotation) gives NaN, a vast covariance inf; a zero or negative variance would
+        # poison the filter for good (every later correction NaN)
+        if not math.isfinite(z.sum() + variance.sum()) or not np.all(variance > 0.0):
+            self._refuse("covariance", "pose with an invalid orientation or a covariance that is not positive "
+                                       "ignored")
             return
         self.last_pose_stamp = stamp
         self.pose_fresh_until = fresh_until(received, age, v["max_pose_age"])

@@ -8,10 +8,12 @@ one pose (or reference) handed to the compensator's callback; whatever correctio
 bridge's, and through the bridge's client the increment it would send is computed. An oracle that shares no
 code with the nodes re-derives from the raw values what must be refused, and the case is unexpected when:
 
-- a pose in another frame, with a quaternion off unit length by more than 1e-3, a non-finite value, or a
-  stamp outside [-max_future, max_pose_age] of now yields a correction;
+- a pose in another frame, with a quaternion off unit length by more than 1e-3, a non-finite value, a
+  position beyond max_pose_range, or a stamp outside [-max_future, max_pose_age] of now yields a correction;
 - the bridge takes a correction (from the compensator, or handed to it directly as a rogue publisher would)
   in another frame, non-finite, or stamped outside its own [-max_future, max_age];
+- the compensator publishes a non-finite correction, or one faster than its max_speed (whatever state
+  earlier cases left its filter in);
 - a correction is non-finite or faster than the compensator's max_speed, or an increment leaves the
   bridge's per-period clamp, or the bridge's safety monitor objects to it.
 """
@@ -23,7 +25,7 @@ import time
 import numpy as np
 
 from ..core.motoplus_protocol import metres_to_units
-from ..core.pose_cdr import encode_pose_with_covariance_cdr, encode_twist_cdr
+from ..core.pose_cdr import decode_twist_cdr, encode_pose_with_covariance_cdr, encode_twist_cdr
 from ..core.rotation import quaternion_xyzw, so3_exp
 
 NOMINAL = np.array([0.01, -0.02, 0.40])
@@ -94,6 +96,8 @@ class NodeChain:
         # the bridge is never armed: no connection is made, and its client still computes each increment
         self.bridge = MotoPlusBridgeNode(local=local, context=self.context)
         self.compensator = PdCompensatorNode(local=local, context=self.context)
+        self.published: list[np.ndarray] = []  # every correction the compensator hands on, as the bridge gets it
+        local.take(self.bridge.resolve_topic_name("correction"), lambda data: self.published.append(decode_twist_cdr(data)[2]))
         self.c = self.compensator.values
         self.b = self.bridge.values
         self.client = self.bridge.client
@@ -128,14 +132,19 @@ class NodeChain:
         pose, covariance, age, frame = pose_case(data)
         must_refuse = (frame != self.c["gauge_frame"] or age is None or not -self.c["max_future"] < age < self.c["max_pose_age"]
                        or not np.all(np.isfinite(pose)) or abs(_norm(pose[3:]) - 1.0) > 1e-3
+                       or _norm(pose[:3]) > self.c["max_pose_range"]
                        or (self.c["use_covariance"] and not np.all(np.isfinite(covariance))))
         with self.bridge._lock:
             self.bridge._velocities.clear()
-        published = self.compensator.corrections
+        self.published.clear()
         taken = self._pose(pose, covariance, age, frame)
-        if must_refuse and self.compensator.corrections != published:
+        if must_refuse and self.published:
             raise UnsafeOutcome("pd_compensator corrected from a pose that must be refused "
                                 f"(frame {frame!r}, age {age}, pose {pose.tolist()})")
+        for velocity in self.published:
+            if not np.all(np.isfinite(velocity)) or np.any(np.abs(velocity) > np.array(self.c["max_speed"]) + 1e-12):
+                raise UnsafeOutcome(f"pd_compensator published {velocity.tolist()} (covariance diagonal "
+                                    f"{np.diag(covariance).tolist()})")
         self._judge(taken, must_refuse)
 
     def correction_case(self, data: bytes) -> None:
@@ -196,7 +205,7 @@ class NodeChain:
         move = self.bridge._increment(now)
         if move is not None:
             step, stamp = move
-            units = self.client._limit(self.client.rounding(step))
+            units = self.client.units_for(step)
             if np.any(np.abs(units) > self.max_step_units):
                 raise UnsafeOutcome(f"increment {units} beyond the clamp {self.max_step_units}")
             broken = self.client.monitor.check(units, True, stamp, now, (0,) * 6)
