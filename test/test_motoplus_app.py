@@ -143,15 +143,18 @@ def test_fuzzed_streams_never_move_beyond_the_controllers_limits(tmp_path) -> No
                                             mp.FAULT_PROTOCOL, mp.FAULT_NOT_ARMED, mp.FAULT_ALARM)), codes
 
 
-@pytest.mark.parametrize("rule, broken, said", [
-    ("the clamp", ("s->cut = mpcl_clamp(increment, s->step);", "s->cut = 0;"), "cycle share|period step"),
-    ("narrowing", ("h->max_step[i] < 1 || h->max_step[i] > c->max_step[i]", "h->max_step[i] < 1"),
+@pytest.mark.parametrize("rule, file, broken, said", [
+    ("the clamp", "mpcl_session.c", ("s->cut = mpcl_clamp(increment, s->step);", "s->cut = 0;"),
+     "cycle share|period step"),
+    ("narrowing", "mpcl_session.c", ("h->max_step[i] < 1 || h->max_step[i] > c->max_step[i]", "h->max_step[i] < 1"),
      "widened session step"),
-    ("readiness", ("if (!ready) {\n        fault(", "if (0) {\n        fault("), "not ready")])
-def test_the_fuzzer_catches_a_controller_that_breaks_a_rule(tmp_path, rule, broken, said) -> None:
+    ("readiness", "mpcl_session.c", ("if (!ready) {\n        fault(", "if (0) {\n        fault("), "not ready"),
+    ("the offset's bookkeeping", "mpcl_app.c", ("    if (!app.session.armed) drop_remaining();", ""),
+     "reported offset")])
+def test_the_fuzzer_catches_a_controller_that_breaks_a_rule(tmp_path, rule, file, broken, said) -> None:
     source = tmp_path / "motoplus"
     shutil.copytree(motoplus_app.firmware_dir(), source)
-    session = source / "mpcl_session.c"
+    session = source / file
     text = session.read_text()
     assert broken[0] in text, rule
     session.write_text(text.replace(broken[0], broken[1]))

@@ -119,6 +119,18 @@ static void flush(void)
     s->out_len = 0;
 }
 
+/* Forgets what is left of the period's step (the session ended, or a motion call failed), so that the
+ * offset the session reports, and the period's step, count only what mpExRcsIncrementMove was given. */
+static void drop_remaining(void)
+{
+    int i;
+    for (i = 0; i < 6; ++i) {
+        app.session.offset[i] -= app.remaining[i];
+        app.period_step[i] -= app.remaining[i];
+        app.remaining[i] = 0;
+    }
+}
+
 void mpcl_app_accepted(int fd)
 {
     mpSemTake(app.lock, WAIT_FOREVER);
@@ -153,7 +165,7 @@ void mpcl_app_gone(const char *why)
     mpSemTake(app.lock, WAIT_FOREVER);
     mpcl_session_closed(&app.session, why);
     app.peer_fd = -1;
-    memset(app.remaining, 0, sizeof app.remaining);  /* no session: nothing more is handed out */
+    drop_remaining();  /* no session: nothing more is handed out */
     mpSemGive(app.lock);
 }
 
@@ -171,7 +183,7 @@ static void share(int32_t out[6], uint32_t cycles_left)
     }
 }
 
-static void move(const int32_t increment[6])
+static int move(const int32_t increment[6])
 {
     MP_EXPOS_DATA data;
     static const UCHAR types[4] = {MP_INC_BF_DTYPE, MP_INC_RF_DTYPE, MP_INC_TF_DTYPE, MP_INC_UF_DTYPE};
@@ -189,8 +201,8 @@ static void move(const int32_t increment[6])
         app.motion_errors++;
         snprintf(why, sizeof why, "mpExRcsIncrementMove returned %d", ret);
         mpcl_session_alarm(&app.session, why);  /* latched: no more motion until a new HELLO */
-        memset(app.remaining, 0, sizeof app.remaining);
     }
+    return ret;
 }
 
 void mpcl_app_cycle(void)
@@ -212,15 +224,16 @@ void mpcl_app_cycle(void)
         if (app.session.armed) app.periods++;
         mpcl_session_period(&app.session, mpGetRtc(), app.clock_us, pose, ready, app.period_step);
         memcpy(app.remaining, app.period_step, sizeof app.remaining);
-        flush();
+        flush();  /* a failed STATE ends the session before any of the step is handed out */
     }
     if (app.session.armed) {
         share(increment, app.period_cycles - (phase == 0u ? 0u : phase));
         for (i = 0; i < 6; ++i) any |= increment[i] != 0;
-        if (any) move(increment);
-    } else {
-        memset(app.remaining, 0, sizeof app.remaining);
+        if (any && move(increment) != 0) {
+            for (i = 0; i < 6; ++i) app.remaining[i] += increment[i];  /* not applied either */
+        }
     }
+    if (!app.session.armed) drop_remaining();
     mpSemGive(app.lock);
 }
 

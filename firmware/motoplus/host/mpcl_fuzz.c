@@ -9,6 +9,7 @@
  *     more than the clamp, and the total never leaves the controller's offset bound;
  *   - nothing moves in a cycle that began disarmed, or in a period that began with the controller not ready;
  *   - an armed session's bounds are never wider than the controller's (no widened limit);
+ *   - disarmed, the offset the application reports is what mpExRcsIncrementMove was really given;
  *   - every byte the application sends decodes as a valid frame.
  *
  * Usage: mpcl_fuzz STREAMS SEED   (prints one JSON line; exit status 1 on any violation)
@@ -292,7 +293,11 @@ static void cycle(run *r)
         if (!before.armed) violation("motion in a cycle that began disarmed", 1, 0);
         if (!r->period_ready) violation("motion in a period that began not ready", 1, 0);
     }
-    if (after.armed) {
+    if (!after.armed) {  /* nothing is left to hand out: the offset it reports is what really moved */
+        for (i = 0; i < 6; ++i) {
+            if (after.offset[i] != r->moved[i]) violation("reported offset beside what moved", after.offset[i], (long)r->moved[i]);
+        }
+    } else {
         for (i = 0; i < 6; ++i) {
             if (after.session_step[i] > r->b.step_bound[i] || after.session_step[i] < 1)
                 violation("widened session step", after.session_step[i], r->b.step_bound[i]);
