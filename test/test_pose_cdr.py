@@ -83,3 +83,24 @@ def test_a_pose_the_estimator_sent_reads_back_in_the_compensator() -> None:
                 b"\x01\x00" + serialized.with_covariance[2:]):
         with pytest.raises(CdrFormatError):
             decode_pose_with_covariance_cdr(bad)
+
+
+def test_consecutive_poses_near_a_half_turn_keep_one_hemisphere() -> None:
+    """A profiler looking down on the gauge sits near a half turn, where w crosses zero: signed by w >= 0 the
+    quaternion flipped between consecutive poses; signed against the orientation hint it never does, and the
+    bytes still decode to the same rotation."""
+    from profile_pose_ros.core.pose_cdr import SerializedPosePair, decode_pose_with_covariance_cdr
+    from profile_pose_ros.core.rotation import quaternion_xyzw, rotation_from_quaternion_xyzw, so3_exp
+
+    rng = np.random.default_rng(3)
+    rotations = [so3_exp(np.array([np.pi, 0.0, 0.0]) + rng.normal(0.0, 2e-3, 3)) for _ in range(200)]
+    plain = np.array([quaternion_xyzw(r) for r in rotations])
+    assert np.any(np.sum(plain[1:] * plain[:-1], axis=1) < 0)  # the old sign convention flips
+    pair, quaternions = SerializedPosePair(), []
+    for rotation in rotations:
+        pair.fill(rotation, np.zeros(3), np.eye(6), 1, 2, "gauge")
+        q = np.array(decode_pose_with_covariance_cdr(pair.with_covariance)[2][3:])
+        np.testing.assert_allclose(rotation_from_quaternion_xyzw(q), rotation, atol=1e-12)
+        quaternions.append(q)
+    quaternions = np.array(quaternions)
+    assert np.all(np.sum(quaternions[1:] * quaternions[:-1], axis=1) >= 0)

@@ -16,7 +16,7 @@ from functools import lru_cache
 import numpy as np
 
 from .cdr import CdrReader, CdrWriter, stamped
-from .rotation import quaternion_xyzw
+from .rotation import HALF_TURN_X, quaternion_near
 
 _POSE = struct.Struct("<7d")  # position x y z, orientation x y z w
 _TWIST = struct.Struct("<6d")  # linear x y z, angular x y z
@@ -73,8 +73,8 @@ def encode_twist_cdr(values, stamp_ns: int, frame_id: str) -> bytes:
     return stamped(_header(frame_id), *divmod(stamp_ns, 1_000_000_000)) + _TWIST.pack(*(float(v) for v in values[:6]))
 
 
-def _pose_body(rotation: np.ndarray, translation: np.ndarray) -> bytes:
-    return _POSE.pack(*np.asarray(translation, dtype=float).tolist(), *quaternion_xyzw(rotation).tolist())
+def _pose_body(rotation: np.ndarray, translation: np.ndarray, hint=HALF_TURN_X) -> bytes:
+    return _POSE.pack(*np.asarray(translation, dtype=float).tolist(), *quaternion_near(rotation, hint).tolist())
 
 
 def encode_pose_cdr(rotation: np.ndarray, translation: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
@@ -98,8 +98,9 @@ class SerializedPosePair:
         self.with_covariance = b""
 
     def fill(self, rotation: np.ndarray, translation: np.ndarray, covariance: np.ndarray, stamp_sec: int,
-             stamp_nanosec: int, frame_id: str) -> None:
+             stamp_nanosec: int, frame_id: str, hint=HALF_TURN_X) -> None:
+        """hint: the quaternion's hemisphere (rotation.quaternion_near)."""
         head = stamped(_header(frame_id), stamp_sec, stamp_nanosec)
-        pose = _pose_body(rotation, translation)
+        pose = _pose_body(rotation, translation, hint)
         self.pose = head + pose
         self.with_covariance = head + pose + np.ascontiguousarray(covariance, dtype="<f8").reshape(36).tobytes()

@@ -70,6 +70,18 @@ def quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
     return np.array([sign * v / norm for v in q])
 
 
+HALF_TURN_X = (1.0, 0.0, 0.0, 0.0)  # the profiler looking down on the gauge: the default orientation hint
+
+
+def quaternion_near(rotation: np.ndarray, hint=HALF_TURN_X) -> np.ndarray:
+    """quaternion_xyzw, signed so that its dot product with `hint` (x y z w) is >= 0. w >= 0 flips the sign
+    wherever w crosses zero, which is where a profiler looking down on a gauge lives (a half turn), so
+    consecutive poses jumped between hemispheres. Against a fixed hint the sign changes only for rotations a
+    half turn away from the hint's, and it depends on nothing but this rotation, so a replay reproduces it."""
+    q = quaternion_xyzw(rotation)
+    return -q if sum(a * b for a, b in zip(q.tolist(), hint)) < 0.0 else q
+
+
 def rotation_from_quaternion_xyzw(q: np.ndarray) -> np.ndarray:
     x, y, z, w = np.asarray(q, dtype=float).tolist()  # Python floats: see quaternion_xyzw
     norm = math.sqrt(x * x + y * y + z * z + w * w)

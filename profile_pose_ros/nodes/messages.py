@@ -8,7 +8,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from ..core.cdr import HEADER, STAMP
 from ..core.profile_cloud import Field, decode_profile, encode_profile
-from ..core.rotation import quaternion_xyzw, rotation_angle, rotation_from_quaternion_xyzw
+from ..core.rotation import HALF_TURN_X, quaternion_near, rotation_angle, rotation_from_quaternion_xyzw
 
 
 
@@ -101,17 +101,17 @@ class PoseMessagePair:
         self.with_covariance = pose_with_covariance(self.pose, np.zeros(36))
 
     def fill(self, rotation: np.ndarray, translation: np.ndarray, covariance: np.ndarray, stamp_sec: int,
-             stamp_nanosec: int, frame_id: str) -> None:
+             stamp_nanosec: int, frame_id: str, hint=HALF_TURN_X) -> None:
         self.pose.header.stamp.sec, self.pose.header.stamp.nanosec = stamp_sec, stamp_nanosec
         self.pose.header.frame_id = frame_id
-        fill_pose(self.pose.pose, rotation, translation)
+        fill_pose(self.pose.pose, rotation, translation, hint)
         self.with_covariance.pose.covariance = _row_major(covariance)
 
 
-def fill_pose(pose, rotation: np.ndarray, translation: np.ndarray) -> None:
+def fill_pose(pose, rotation: np.ndarray, translation: np.ndarray, hint=HALF_TURN_X) -> None:
     pose.position.x, pose.position.y, pose.position.z = np.asarray(translation, dtype=float).tolist()
     pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = \
-        quaternion_xyzw(rotation).tolist()
+        quaternion_near(rotation, hint).tolist()
 
 
 def rotation_translation(pose) -> tuple[np.ndarray, np.ndarray]:

@@ -67,7 +67,7 @@ PARAMETERS = [
           "thread may miss the controller's next period (an answer later than 0.75 periods moves nothing).", 0.0, 0.7),
     Param("frame", "base", "Cartesian frame of the increments: base, robot, tool or user.", read_only=True),
     Param("base_frame", "base", "frame_id of robot_state."),
-    Param("arm_on_start", False, "Arm (send HELLO) as soon as connected, without ~/start."),
+    Param("arm_on_start", False, "Arm (send HELLO) as soon as connected, without ~/start.", read_only=True),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
     *REALTIME_PARAMETERS,
 ]

@@ -28,6 +28,7 @@ from ..core.latency_window import LatencyWindow
 from ..core.pose_cdr import SerializedPosePair
 from ..core.profile_cdr import decode_profile_cdr
 from ..core.profile_cloud import ProfileFormatError
+from ..core.rotation import HALF_TURN_X
 from ..core.sequence_gaps import SequenceGaps
 from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
@@ -45,6 +46,9 @@ PARAMETERS = [
           read_only=True),
     Param("gauge_frame", "gauge", "frame_id of published poses (the gauge frame G)."),
     Param("profiler_frame", "profiler", "Expected frame_id of incoming profiles; empty accepts any."),
+    Param("orientation_hint", list(HALF_TURN_X), "Quaternion (x y z w) near the mounting's orientation: each pose's "
+          "quaternion is signed to lie on its hemisphere, so consecutive poses never flip sign (the default, a half "
+          "turn about x, is the profiler looking down on the gauge)."),
     Param("refine", True, "Refine the closed form by maximum likelihood (paper eq. 15)."),
     Param("refine_weighting", "corner_covariance",
           f"Refinement weights: one of {', '.join(WEIGHTINGS)} (uniform = the paper's plain sum of squares)."),
@@ -93,7 +97,10 @@ _OPTION_OF_PARAMETER = {
 
 
 def options_from(values: dict) -> EstimatorOptions:
-    """EstimatorOptions from parameter values; raises ValueError for an invalid combination."""
+    """EstimatorOptions from parameter values; raises ValueError for an invalid combination (or hint)."""
+    hint = values.get("orientation_hint", HALF_TURN_X)
+    if len(hint) != 4 or not any(hint) or not all(math.isfinite(v) for v in hint):
+        raise ValueError(f"orientation_hint must be a quaternion x y z w, not {list(hint)}")
     changes = {option: values[name] for name, option in _OPTION_OF_PARAMETER.items() if name in values}
     return EstimatorOptions().with_changes(**changes)
 
@@ -108,11 +115,12 @@ class ProfileResult:
 
 
 def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOptions, profiler_frame: str,
-                       gauge_frame: str, into: PoseMessagePair | SerializedPosePair | None = None) -> ProfileResult:
+                       gauge_frame: str, into: PoseMessagePair | SerializedPosePair | None = None,
+                       hint=HALF_TURN_X) -> ProfileResult:
     """The node's whole computation for one profile (a serialized PointCloud2, as taken from the topic or
     read from a bag), without the node: profile_pose_replay runs exactly this on recorded profiles, so a
     replay reproduces the published poses bit for bit. The poses are `into`'s messages, refilled, when it
-    is given (the node's, reused), else new ones."""
+    is given (the node's, reused), else new ones; `hint` is orientation_hint (the quaternion's hemisphere)."""
     try:
         profile = decode_profile_cdr(serialized)
     except ProfileFormatError as exc:
@@ -123,7 +131,8 @@ def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOption
     if not estimate.ok:
         return ProfileResult(estimate.reason, reprojection_error=estimate.reprojection_error)
     into = into or PoseMessagePair()
-    into.fill(estimate.R, estimate.t, estimate.covariance, profile.stamp_sec, profile.stamp_nanosec, gauge_frame)
+    into.fill(estimate.R, estimate.t, estimate.covariance, profile.stamp_sec, profile.stamp_nanosec, gauge_frame,
+              hint)
     return ProfileResult("", into.pose, into.with_covariance, estimate.reprojection_error, profile.stamp_ns)
 
 
@@ -244,7 +253,7 @@ class PoseEstimatorNode(Node):
 
     def _estimate_and_publish(self, serialized: bytes) -> str:
         result = poses_from_profile(serialized, self.gauge, self.options, self.values["profiler_frame"],
-                                    self.values["gauge_frame"], self.outgoing)
+                                    self.values["gauge_frame"], self.outgoing, self.values["orientation_hint"])
         if result.reprojection_error is not None:
             self.last_reprojection_error = result.reprojection_error
         if result.reason:

@@ -57,7 +57,7 @@ PARAMETERS = [
           "bounds that time this closely (s): the fastest recent PING round trip. Others are dropped and counted "
           "(a map still settling moves between triggers). A USB serial adapter needs its round trip here.",
           1e-5, 0.05, read_only=True),
-    Param("frame_id", "profiler", "frame_id of the published profiles (the profiler frame F)."),
+    Param("frame_id", "profiler", "frame_id of the published profiles (the profiler frame F).", read_only=True),
     Param("max_input_age", 1.0, "Reconnect when the device sends nothing for this long (s); 0 disables "
           "(ljx in external-trigger mode sends nothing between triggers).", 0.0, 60.0, read_only=True),
     Param("reconnect_min", 0.1, "First reconnect delay (s); doubles up to reconnect_max.", 0.01, 10.0,

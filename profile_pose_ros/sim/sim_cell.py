@@ -35,7 +35,7 @@ GIL_SWITCH_INTERVAL = 2e-4  # s; CPython's default is 5 ms
 
 PARAMETERS = [
     Param("gauge_file", "", "Gauge YAML; empty: the shipped config/gauge_paper_n5.yaml.", read_only=True),
-    Param("gauge_frame", "gauge", "frame_id of /sim/ground_truth."),
+    Param("gauge_frame", "gauge", "frame_id of /sim/ground_truth.", read_only=True),
     Param("host", "127.0.0.1", "Address the simulated devices listen on.", read_only=True),
     Param("profiler_port", 24692, "Profiler data port (0: any free port, see the log).", 0, 65535, read_only=True),
     Param("mcu_port", 24693, "Trigger MCU port, for serial_url socket://host:port (0: any free port).", 0, 65535,

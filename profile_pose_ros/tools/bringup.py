@@ -2,8 +2,9 @@
 real devices) and the four nodes, each its own process, with one parameter file; logs and the exact
 commands under runs/<timestamp>/; "ready" only once every node reports and profiles, poses and
 corrections flow; Ctrl-C (or SIGTERM) stops them bridge first (it sends STOP), cell last, and leaves no
-process behind. `ros2 run profile_pose_ros <exe>` is used where a ROS install provides the package, the
-venv's console scripts otherwise. --namespace puts a second cell beside the first without cross-talk.
+process behind. Each node is this process's own child: the installed executable the ament index finds
+(what `ros2 run` would run, without its wrapper, which would swallow the stop), the venv's console
+script otherwise. --namespace puts a second cell beside the first without cross-talk.
 --composed runs the four nodes in one cell_container process (nodes/cell_container.py).
 """
 from __future__ import annotations

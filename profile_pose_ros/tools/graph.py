@@ -2,7 +2,7 @@
 to watch them: what the checks, the experiment and the soak run against."""
 from __future__ import annotations
 
-import shutil
+import os
 import signal
 import socket
 import subprocess
@@ -55,13 +55,25 @@ def ros_params(values: dict) -> list[str]:
 
 
 def launcher(executable: str) -> list[str]:
-    """`ros2 run profile_pose_ros <exe>` where a ROS install provides the package, else the venv's
-    console script (or `python -m`)."""
-    ros2 = shutil.which("ros2")
-    if ros2 and subprocess.run([ros2, "pkg", "prefix", "profile_pose_ros"], capture_output=True,
-                               timeout=30).returncode == 0:
-        return [ros2, "run", "profile_pose_ros", executable]
-    return processes.executable(executable, MODULES[executable])
+    """The installed executable itself where the ament index knows the package (the file `ros2 run
+    profile_pose_ros <exe>` would run), else the venv's console script (or `python -m`). Never the
+    `ros2 run` wrapper: it ignores SIGINT and waits, so a stop would reach the wrapper and not the node,
+    and the node would outlive the bringup."""
+    installed = installed_executable(executable)
+    return [str(installed)] if installed is not None else processes.executable(executable, MODULES[executable])
+
+
+def installed_executable(executable: str) -> Path | None:
+    """<prefix>/lib/profile_pose_ros/<exe> of the package the ament index (AMENT_PREFIX_PATH) finds."""
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+    except ImportError:
+        return None
+    try:
+        path = Path(get_package_prefix("profile_pose_ros")) / "lib" / "profile_pose_ros" / executable
+    except (PackageNotFoundError, ValueError, OSError):  # OSError: no AMENT_PREFIX_PATH (a venv install)
+        return None
+    return path if os.access(path, os.X_OK) else None
 
 
 ESTIMATING = ("pose_estimator", "cell_container")  # executables that load the compiled estimator

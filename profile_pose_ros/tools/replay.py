@@ -93,7 +93,8 @@ def replay(bag: str | Path, values: dict, profile_topic: str | None = None, outp
     for topic, _type, received_ns, data in read_messages(bag, wanted):
         if topic == profile_topic:
             start = time.perf_counter()
-            result = poses_from_profile(data, gauge, options, values["profiler_frame"], values["gauge_frame"])
+            result = poses_from_profile(data, gauge, options, values["profiler_frame"], values["gauge_frame"],
+                                        hint=values["orientation_hint"])
             busy += time.perf_counter() - start
             if result.reason:
                 key = result.reason.split(":")[0][:60]

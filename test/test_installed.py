@@ -1,0 +1,155 @@
+"""What a ROS 2 user installs, run as the user guide says (docs/user_guide.md, section 3): the package
+built with colcon into a workspace, `source install/setup.bash`, and every executable started from
+install/lib/profile_pose_ros with a Python path on which neither the source tree nor the editable install
+comes first. The bringup from the install starts the nodes themselves (never a `ros2 run` wrapper that
+would swallow their stop) and leaves nothing behind."""
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT
+
+# argparse tools answer --help; nodes start, show up in the graph, and stop on SIGINT with exit status 0
+TOOLS = ["profile_pose_bag", "profile_pose_replay", "profile_pose_latency", "profile_pose_bringup",
+         "profile_pose_experiment", "profile_pose_fuzz", "profile_pose_faults", "profile_pose_soak",
+         "profile_pose_demo", "profile_pose_benchmark", "profile_pose_node_benchmark", "profile_pose_study",
+         "profile_pose_gauge", "profile_pose_profiler_check"]
+NODES = {"pose_estimator": ["pose_estimator"], "profiler_driver": ["profiler_driver"],
+         "pd_compensator": ["pd_compensator"], "motoplus_bridge": ["motoplus_bridge"], "sim_cell": ["sim_cell"],
+         "cell_container": ["profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge"],
+         "bag_recorder": ["bag_recorder"], "bag_player": ["bag_player"]}
+
+# the guide's commands, in the test's venv and workspace
+GUIDE = """set -e
+source "{venv}/bin/activate"
+export AMENT_PREFIX_PATH=$VIRTUAL_ENV
+cd "{ws}" && colcon build --packages-select profile_pose_ros --event-handlers console_direct- >/dev/null
+source install/setup.bash
+env -0
+"""
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory) -> tuple[Path, dict]:
+    """(the install prefix, the environment `source install/setup.bash` gives)."""
+    ws = tmp_path_factory.mktemp("ws")
+    shutil.copytree(ROOT, ws / "src" / "profile_pose_ros", ignore=shutil.ignore_patterns(
+        ".venv", ".git", "build", "install", "log", "runs", "*.egg-info", "__pycache__"))
+    venv = Path(sys.executable).parent.parent
+    result = subprocess.run(["bash", "-c", GUIDE.format(venv=venv, ws=ws)], capture_output=True, timeout=600,
+                            env={k: v for k, v in os.environ.items() if k not in ("AMENT_PREFIX_PATH", "PYTHONPATH")})
+    assert result.returncode == 0, result.stderr.decode(errors="replace")
+    env = dict(item.split("=", 1) for item in result.stdout.decode().split("\0") if "=" in item)
+    prefix = ws / "install" / "profile_pose_ros"
+    site = next((prefix / "lib").glob("python3*/site-packages"))
+    assert env["PYTHONPATH"].split(":")[0] == str(site)  # the installed copy comes first
+    assert str(prefix) in env["AMENT_PREFIX_PATH"].split(":")
+    return prefix, env
+
+
+def test_the_installed_package_is_the_one_that_runs(workspace) -> None:
+    prefix, env = workspace
+    probe = subprocess.run([sys.executable, "-c", "import profile_pose_ros, profile_pose_ros.sim.motoplus_app as m; "
+                            "print(profile_pose_ros.__file__); print(m.firmware_dir())"],
+                           capture_output=True, text=True, env=env, cwd="/", timeout=60)
+    module, firmware = probe.stdout.split()
+    assert Path(module).is_relative_to(prefix) and Path(firmware).is_relative_to(prefix), probe.stderr
+
+
+@pytest.mark.parametrize("tool", TOOLS)
+def test_every_installed_tool_answers_help(workspace, tool) -> None:
+    prefix, env = workspace
+    run = subprocess.run([str(prefix / "lib" / "profile_pose_ros" / tool), "--help"], capture_output=True,
+                         text=True, env=env, cwd="/", timeout=120)
+    assert run.returncode == 0 and "usage" in run.stdout.lower(), run.stdout + run.stderr
+
+
+@pytest.mark.parametrize("executable", sorted(NODES))
+def test_every_installed_node_starts_and_stops_cleanly(ros, workspace, tmp_path, executable) -> None:
+    prefix, env = workspace
+    args = {"sim_cell": ["-p", "profiler_port:=0", "-p", "mcu_port:=0", "-p", "robot_port:=0"],
+            "bag_recorder": ["-p", f"output:={tmp_path / 'bag'}"],
+            "bag_player": ["-p", f"bag:={_empty_bag(tmp_path / 'empty')}"]}.get(executable, [])
+    process = subprocess.Popen([str(prefix / "lib" / "profile_pose_ros" / executable), "--ros-args", *args],
+                               env=dict(env, ROS_DOMAIN_ID=str(ros.domain_id)), stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
+    try:
+        watcher = ros.node("installed_watch")
+        names = lambda: set(watcher.get_node_names())  # noqa: E731
+        assert ros.spin_until(lambda: set(NODES[executable]) <= names() or process.poll() is not None, 120.0)
+        assert process.poll() is None, process.communicate()[0]
+        process.send_signal(signal.SIGINT)
+        output = process.communicate(timeout=30)[0]
+        assert process.returncode == 0, output
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+def _empty_bag(path: Path) -> Path:
+    from profile_pose_ros.bags.writer import BagWriter
+
+    BagWriter(path).close()
+    return path
+
+
+def domain_processes(domain_id: int) -> list[int]:
+    """Processes started with this ROS_DOMAIN_ID (the witness: whatever the bringup's own records say)."""
+    found = []
+    marker = f"ROS_DOMAIN_ID={domain_id}".encode()
+    for proc in Path("/proc").iterdir():
+        if proc.name.isdigit() and int(proc.name) != os.getpid():
+            try:
+                if marker in (proc / "environ").read_bytes().split(b"\0"):
+                    found.append(int(proc.name))
+            except OSError:
+                pass
+    return found
+
+
+def parent(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL"])
+def test_the_bringup_from_the_install_owns_its_nodes(workspace, tmp_path, how) -> None:
+    from profile_pose_ros.tools.processes import fresh_domain_id
+
+    prefix, env = workspace
+    domain = fresh_domain_id()
+    bringup = subprocess.Popen([str(prefix / "lib" / "profile_pose_ros" / "profile_pose_bringup"), "--domain-id",
+                                str(domain), "--out", str(tmp_path)], env=dict(env, ROS_DOMAIN_ID=str(domain)),
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        for line in bringup.stdout:  # the bringup says when it is ready: profiles, poses, corrections flow
+            lines.append(line)
+            if line.startswith("ready in") or "profile_pose_bringup:" in line:
+                break
+        assert any(line.startswith("ready in") for line in lines), "".join(lines)
+        nodes = [pid for pid in domain_processes(domain) if pid != bringup.pid]
+        assert len(nodes) == 5 and all(parent(pid) == bringup.pid for pid in nodes)  # no wrapper between
+        scripts = [Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[1].decode() for pid in nodes]
+        assert all(Path(script).is_relative_to(prefix) for script in scripts), scripts  # python <installed exe>
+        bringup.send_signal(getattr(signal, how))
+        bringup.wait(timeout=60)
+        end = time.monotonic() + 30.0  # SIGKILL: the nodes get SIGTERM from the kernel, and take their clean path
+        while (survivors := domain_processes(domain)) and time.monotonic() < end:
+            time.sleep(0.1)  # polling /proc for the condition, with a deadline
+        assert survivors == [], [Path(f"/proc/{pid}/cmdline").read_bytes()[:200] for pid in survivors]
+        if how == "SIGTERM":
+            output = bringup.stdout.read()
+            assert bringup.returncode == 0 and "stopped" in output, output
+    finally:
+        if bringup.poll() is None:
+            bringup.kill()
+            bringup.wait()

@@ -1,0 +1,72 @@
+"""Every writable parameter takes effect at run time: set through the parameter service (as `ros2 param
+set` does), it is accepted and the node works with the new value from then on (each node reads its
+working values afresh where it uses them). Whatever a node reads only at start is declared read-only, so
+`ros2 param set` says so instead of reporting a success that changes nothing."""
+from __future__ import annotations
+
+import pytest
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+
+from profile_pose_ros.nodes import motoplus_bridge, pd_compensator, pose_estimator, profiler_driver
+from profile_pose_ros.sim import sim_cell
+
+NODES = {
+    "profiler_driver": (profiler_driver, lambda ctx: profiler_driver.ProfilerDriverNode(
+        context=ctx, parameter_overrides=[Parameter("port", value=9)])),
+    "pose_estimator": (pose_estimator, lambda ctx: pose_estimator.PoseEstimatorNode(context=ctx)),
+    "pd_compensator": (pd_compensator, lambda ctx: pd_compensator.PdCompensatorNode(context=ctx)),
+    "motoplus_bridge": (motoplus_bridge, lambda ctx: motoplus_bridge.MotoPlusBridgeNode(
+        context=ctx, parameter_overrides=[Parameter("port", value=9)])),
+    "sim_cell": (sim_cell, lambda ctx: sim_cell.SimCellNode(context=ctx, parameter_overrides=[
+        Parameter(name, value=0) for name in ("profiler_port", "mcu_port", "robot_port")])),
+}
+# values that are valid and differ from the defaults, where the type alone does not give one
+CHANGED = {"refine_weighting": "uniform", "refine_model": "dense", "corrupt_mode": "flip", "profiler_frame": "",
+           "program_offset": [1e-4, 0.0, 0.0, 0.0, 0.0, 0.0]}
+
+
+def changed(param, current):
+    if param.name in CHANGED:
+        return CHANGED[param.name]
+    if isinstance(current, bool):
+        return not current
+    if isinstance(current, str):
+        return current + "_b"
+    if not isinstance(current, (int, float)):  # a list, or rclpy's array('d')
+        return [0.5 * v if v else 0.01 for v in current]
+    if param.low is not None:
+        value = param.low + 0.37 * (param.high - param.low)
+        return int(value) if isinstance(current, int) else float(value)
+    return current + 1 if isinstance(current, int) else 0.5 * current
+
+
+@pytest.mark.parametrize("name", sorted(NODES))
+def test_every_writable_parameter_takes_effect_at_run_time(ros, name) -> None:
+    module, factory = NODES[name]
+    node = ros.add(factory(ros.context))
+    client = AsyncParameterClient(ros.node(f"{name}_setter"), node.get_name())
+    assert client.wait_for_services(timeout_sec=10.0)
+    writable = [p for p in module.PARAMETERS if not p.read_only]
+    for param in writable:
+        value = changed(param, node.values[param.name])
+        current = node.values[param.name]
+        assert value != (list(current) if isinstance(value, list) else current), param.name
+        future = client.set_parameters([Parameter(param.name, value=value)])
+        assert ros.spin_until(future.done, 10.0), param.name
+        result = future.result().results[0]
+        assert result.successful, (param.name, value, result.reason)
+        applied = node.values[param.name]
+        assert (list(applied) if isinstance(value, list) else applied) == value, (param.name, "accepted, not applied")
+
+
+@pytest.mark.parametrize("name", sorted(NODES))
+def test_a_read_only_parameter_is_refused_at_run_time(ros, name) -> None:
+    module, factory = NODES[name]
+    node = ros.add(factory(ros.context))
+    client = AsyncParameterClient(ros.node(f"{name}_setter"), node.get_name())
+    assert client.wait_for_services(timeout_sec=10.0)
+    param = next(p for p in module.PARAMETERS if p.read_only)
+    future = client.set_parameters([Parameter(param.name, value=changed(param, node.values[param.name]))])
+    assert ros.spin_until(future.done, 10.0)
+    assert not future.result().results[0].successful  # `ros2 param set` prints the refusal
