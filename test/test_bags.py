@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+import yaml
 
 from profile_pose_ros.bags import BagError, BagWriter, bag_info, read_messages, recover
 from profile_pose_ros.bags.reader import typestore
@@ -54,6 +55,8 @@ def test_zstd_chunks_an_empty_bag_and_refusals(tmp_path) -> None:
     assert texts(tmp_path / "z") == ["y" * 1000] * 50
     assert sum(f.stat().st_size for f in (tmp_path / "z").glob("*.mcap")) < 50 * 1000 / 5
 
+    metadata = yaml.safe_load((tmp_path / "z" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert metadata["ros_distro"] == "jazzy"  # as rosbag2 writes it (rosbags wrote its own name)
     empty = BagWriter(tmp_path / "empty")
     empty.close()
     assert bag_info(tmp_path / "empty").message_count == 0 and texts(tmp_path / "empty") == []
@@ -96,6 +99,9 @@ def test_a_killed_writer_leaves_everything_up_to_its_last_flush(tmp_path, storag
     assert recover(bag) == []  # a closed bag is left as it is
     if storage == "mcap":
         assert foxglove_count(bag) == len(got)
+        # the recovered split keeps the recording's zstd chunks (it came back uncompressed, ten times larger)
+        from profile_pose_ros.bags.writer import _mcap_compression
+        assert {_mcap_compression(path) for path in bag.glob("*.mcap")} == {"zstd"}
 
 
 def foxglove_count(bag) -> int:

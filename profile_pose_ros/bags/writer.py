@@ -25,6 +25,7 @@ COMPRESSIONS = ("none", "zstd")
 OPEN_DIR = ".open"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 VERSION = 9
+ROS_DISTRO = "jazzy"  # what rosbag2 writes into metadata.yaml (rosbags writes its own name)
 
 
 @dataclass
@@ -65,10 +66,12 @@ def _register_installed(msgtype: str) -> None:
 class BagWriter:
     """Not thread-safe: call from one thread (the recorder's executor)."""
 
-    def __init__(self, path: str | Path, storage: str = "mcap", compression: str = "none",
+    def __init__(self, path: str | Path, storage: str = "mcap", compression: str | None = None,
                  max_bytes: int = 0, max_duration_s: float = 0.0) -> None:
         if storage not in STORAGES:
             raise BagError(f"storage must be one of {', '.join(STORAGES)}, not {storage!r}")
+        if compression is None:  # zstd chunks by default (a tenth of the size); sqlite3 has no compression
+            compression = "zstd" if storage == "mcap" else "none"
         if compression not in COMPRESSIONS:
             raise BagError(f"compression must be one of {', '.join(COMPRESSIONS)}, not {compression!r}")
         if compression != "none" and storage != "mcap":
@@ -169,7 +172,7 @@ def _empty_metadata(storage: str) -> dict:
     return {"version": VERSION, "storage_identifier": storage, "relative_file_paths": [],
             "duration": {"nanoseconds": 0}, "starting_time": {"nanoseconds_since_epoch": 0},
             "message_count": 0, "topics_with_message_count": [], "compression_format": "",
-            "compression_mode": "", "files": [], "custom_data": None, "ros_distro": "rosbags"}
+            "compression_mode": "", "files": [], "custom_data": None, "ros_distro": ROS_DISTRO}
 
 
 def merge_infos(infos: list[dict]) -> dict:
@@ -232,9 +235,11 @@ def recover(bag: str | Path) -> list[str]:
             continue
         files = [f for f in split_dir.iterdir() if f.suffix in (".mcap", ".db3")]
         if files:
+            compression = "none"
             if files[0].suffix == ".mcap":
+                compression = _mcap_compression(files[0])
                 _terminate_mcap(files[0])
-            count = _rewrite(files[0], recovered_dir / split_dir.name)
+            count = _rewrite(files[0], recovered_dir / split_dir.name, compression)
             done.append(f"{split_dir.name}: {count} messages recovered")
         shutil.rmtree(split_dir)
         if files:
@@ -266,12 +271,30 @@ def _terminate_mcap(path: Path) -> None:
         f.write(MCAP_MAGIC)
 
 
-def _rewrite(raw: Path, target: Path) -> int:
+def _mcap_compression(path: Path) -> str:
+    """The compression of an MCAP file's first chunk ("zstd", or "none" when it has no compressed chunk):
+    what the recovered split is written with, so recovering a zstd bag does not make it ten times larger."""
+    with path.open("rb") as f:
+        data = f.read(1 << 20)
+    at = len(MCAP_MAGIC)
+    while at + 9 <= len(data):
+        op, length = data[at], int.from_bytes(data[at + 1:at + 9], "little")
+        if op == 0x06 and at + 9 + 32 <= len(data):  # Chunk: start, end, size (u64 each), crc (u32), compression
+            size = int.from_bytes(data[at + 37:at + 41], "little")
+            name = data[at + 41:at + 41 + size].decode(errors="replace")
+            return name if name in COMPRESSIONS else "none"
+        at += 9 + length
+    return "none"
+
+
+def _rewrite(raw: Path, target: Path, compression: str = "none") -> int:
     """Copy every message of a storage file into a new closed split at `target`."""
     count = 0
     storage = "mcap" if raw.suffix == ".mcap" else "sqlite3"
     with Reader(raw) as reader:
         writer = Writer(target, version=VERSION, storage_plugin=STORAGES[storage])
+        if compression == "zstd":
+            writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         writer.open()
         connections = {}
         for c in reader.connections:
