@@ -228,6 +228,32 @@ def test_player_keeps_timing_rate_offset_filter_and_loops(ros, tmp_path) -> None
     assert got[:3] == ["b", "b", "b"] and "a0" not in got
 
 
+def test_player_publishes_the_bags_time_on_clock_for_nodes_with_sim_time(ros, tmp_path) -> None:
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+
+    from profile_pose_ros.nodes.bag_player import BagPlayerNode
+
+    bag = tmp_path / "bag"
+    writer = BagWriter(bag)
+    writer.add_topic("/a", STRING)
+    for i in range(30):  # 3 s of bag time, a day after the epoch: far from this machine's clock
+        writer.write("/a", 86400 * 10 ** 9 + i * 10 ** 8, string_bytes(f"a{i}"))
+    writer.close()
+    clocks: list[int] = []
+    listener = ros.node("clock_listener")
+    listener.create_subscription(Clock, "/clock", lambda m: clocks.append(m.clock.sec * 10 ** 9 + m.clock.nanosec), 100)
+    sim = ros.node("sim_time_user")
+    sim.set_parameters([Parameter("use_sim_time", value=True)])
+    ros.add(BagPlayerNode(context=ros.context, parameter_overrides=[
+        Parameter("bag", value=str(bag)), Parameter("clock", value=50.0), Parameter("rate", value=2.0),
+        Parameter("exit_when_done", value=False), Parameter("wait_for_subscribers", value=True)]))
+    assert ros.spin_until(lambda: len(clocks) >= 20, 30.0)
+    assert all(86400 * 10 ** 9 <= c <= 86400 * 10 ** 9 + 29 * 10 ** 8 for c in clocks)
+    assert clocks == sorted(clocks) and clocks[-1] > clocks[0]
+    assert 86400 * 10 ** 9 <= sim.get_clock().now().nanoseconds <= 86400 * 10 ** 9 + 29 * 10 ** 8  # the bag's time
+
+
 def test_player_refuses_a_missing_bag_with_the_reason(tmp_path) -> None:
     command = processes.executable("bag_player", MODULES["bag_player"]) + [
         "--ros-args", "-p", f"bag:={tmp_path / 'nothing'}"]

@@ -22,6 +22,26 @@ def test_package_xml_is_valid_format_3():
     depends = {d.name for d in package.exec_depends}
     assert {"rclpy", "sensor_msgs", "geometry_msgs", "std_msgs", "diagnostic_msgs", "std_srvs"} <= depends
     assert (ROOT / "resource" / "profile_pose_ros").is_file()
+    # every third-party module the package imports is an exec_depend, or named in the pip comment
+    keys = {"numpy": "python3-numpy", "scipy": "python3-scipy", "yaml": "python3-yaml", "serial": "python3-serial",
+            "matplotlib": "python3-matplotlib", "tqdm": "python3-tqdm"}
+    comment = (ROOT / "package.xml").read_text().split("No rosdep keys")[1].split("-->")[0]
+    pip_names = {"control": "python-control", "cv2": "opencv-python-headless"}
+    for module in sorted(imported_modules()):
+        assert keys.get(module, module) in depends or pip_names.get(module, module) in comment, module
+
+
+def imported_modules() -> set[str]:
+    import ast
+
+    roots = set()
+    for path in (ROOT / "profile_pose_ros").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                roots |= {alias.name.split(".")[0] for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                roots.add(node.module.split(".")[0])
+    return {r for r in roots if r not in sys.stdlib_module_names and r != "profile_pose_ros"}
 
 
 def test_colcon_build_installs_ros2_run_layout(tmp_path):

@@ -1,6 +1,7 @@
 """bag_player: publish a rosbag2 bag with its original timing (or a rate factor), from a start offset,
 once or in a loop, all topics or a filtered set; the messages go out as recorded (serialized bytes,
-header stamps untouched) with the QoS their publishers offered. Exits when done unless looping.
+header stamps untouched) with the QoS their publishers offered. Exits when done unless looping. With
+`clock` > 0 it also publishes the bag's time on /clock, so nodes run with use_sim_time live in the bag's time.
 
 Recorded topics keep their absolute names; remap them as usual (`--ros-args -r /profile:=/cell2/profile`).
 """
@@ -15,6 +16,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
 
 from ..bags import BagError, bag_info, read_messages
 from .bag_common import from_bag_qos, message_class
@@ -40,6 +42,8 @@ PARAMETERS = [
           "the first messages would be lost (sensor topics such as profile are best-effort).", 0.0, 60.0,
           read_only=True),
     Param("exit_when_done", True, "Shut down after the last message (unless looping).", read_only=True),
+    Param("clock", 0.0, "Publish the bag's time on /clock this often (Hz), as `ros2 bag play --clock` does, for "
+          "nodes run with use_sim_time; 0: no /clock.", 0.0, 1000.0, read_only=True),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
 ]
 
@@ -66,6 +70,12 @@ class BagPlayerNode(Node):
         self._stop = threading.Event()
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
+        self._bag_origin: tuple[int, float] | None = None  # (bag time ns, monotonic s) of this pass's start
+        self.clock_pub = None
+        if v["clock"] > 0:
+            self.clock_pub = self.create_publisher(Clock, "/clock", 10)
+            self._clock_thread = threading.Thread(target=self._run_clock, name="bag-clock", daemon=True)
+            self._clock_thread.start()
         self._thread = threading.Thread(target=self._run, name="bag-player", daemon=True)
         self._thread.start()
         seconds = self.info.duration_ns * 1e-9
@@ -109,6 +119,7 @@ class BagPlayerNode(Node):
         for topic, _type, stamp_ns, data in read_messages(self.info.path, list(self.publishers_by_topic), start_ns):
             if first_ns is None:
                 first_ns, wall_start = stamp_ns, time.monotonic()
+                self._bag_origin = (first_ns, wall_start)
             delay = wall_start + (stamp_ns - first_ns) * 1e-9 / rate - time.monotonic()
             if delay > 0 and self._stop.wait(delay):
                 return
@@ -116,6 +127,20 @@ class BagPlayerNode(Node):
                 return
             self.publishers_by_topic[topic].publish(data)
             self.published += 1
+
+    def _run_clock(self) -> None:
+        """/clock at the `clock` rate: the bag time being played now (the pass's first message time, plus the
+        time since, times `rate`); nothing before the first message or after the end."""
+        period = 1.0 / self.values["clock"]
+        message = Clock()
+        while not self._stop.wait(period) and not self.done.is_set():
+            origin = self._bag_origin
+            if origin is None:
+                continue
+            now_ns = origin[0] + int((time.monotonic() - origin[1]) * self.values["rate"] * 1e9)
+            message.clock.sec, message.clock.nanosec = divmod(min(now_ns, self.info.start_ns + self.info.duration_ns),
+                                                              1_000_000_000)
+            self.clock_pub.publish(message)
 
     def _publish_diagnostics(self) -> None:
         level, message = (ERROR, self.last_error) if self.last_error else (
@@ -127,6 +152,8 @@ class BagPlayerNode(Node):
     def destroy_node(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5.0)
+        if self.clock_pub is not None:
+            self._clock_thread.join(timeout=5.0)
         super().destroy_node()
 
 
