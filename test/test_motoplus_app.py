@@ -36,7 +36,7 @@ def wait_for(condition, timeout: float = 5.0) -> bool:
 
 @pytest.fixture
 def app():
-    application = HostApplication(configuration(DEFAULT_LIMITS, 3, 0))
+    application = HostApplication(configuration(DEFAULT_LIMITS, 3), port=0)
     application.port = application.start()
     yield application
     application.stop()
@@ -96,16 +96,27 @@ def test_a_refused_motion_call_latches_a_fault_until_a_new_hello(app) -> None:
                                                   (18, 10 ** 6, "max_watchdog 1000000 ms"),
                                                   (19, 0, "0 cycles")])
 def test_a_configuration_outside_its_ranges_is_refused_with_an_alarm(offset, value, said) -> None:
-    config = configuration(DEFAULT_LIMITS, 3, 0)
+    config = configuration(DEFAULT_LIMITS, 3)
     config[offset] = value
-    application = HostApplication(config)
+    application = HostApplication(config, port=0)
     with pytest.raises(RuntimeError, match=said):
         application.start()
     application.stop()
 
 
+def test_two_controllers_side_by_side_listen_on_ports_of_their_own() -> None:
+    """Port 0 on the PC: any free one (the configured D100 is the controller's, not the simulation's)."""
+    first, second = (HostApplication(configuration(DEFAULT_LIMITS, 3), port=0) for _ in range(2))
+    try:
+        ports = first.start(), second.start()
+        assert ports[0] != ports[1] and 50241 not in ports
+    finally:
+        first.stop()
+        second.stop()
+
+
 def test_a_peer_from_another_address_is_closed_at_once() -> None:
-    application = HostApplication(configuration(DEFAULT_LIMITS, 3, 0, bridge_address="127.0.0.2"))
+    application = HostApplication(configuration(DEFAULT_LIMITS, 3, bridge_address="127.0.0.2"), port=0)
     port = application.start()
     try:
         stranger = Client(port)  # from 127.0.0.1

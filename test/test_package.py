@@ -81,7 +81,7 @@ def test_colcon_build_installs_ros2_run_layout(tmp_path):
     assert Path(config).is_relative_to(share)  # found through the ament index
     # sim_cell's robot controller is the C application, built from the installed sources
     controller = subprocess.run([sys.executable, "-c", "from profile_pose_ros.sim import motoplus_app as m, "
-                                 "robot_controller as r; a = m.HostApplication(r.configuration(r.DEFAULT_LIMITS, 3, 0)); "
+                                 "robot_controller as r; a = m.HostApplication(r.configuration(r.DEFAULT_LIMITS, 3), port=0); "
                                  "print(m.firmware_dir()); print(a.start()); a.stop()"],
                                 capture_output=True, text=True, timeout=300, env=env, cwd=workspace)
     assert controller.returncode == 0, controller.stderr

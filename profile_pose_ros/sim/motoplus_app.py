@@ -85,8 +85,9 @@ Six = ctypes.c_int32 * 6
 class HostApplication:
     """One running copy of the application: configure, start, tick its clock, read what it did."""
 
-    def __init__(self, config: dict[int, int], bind_address: str = "127.0.0.1") -> None:
-        """config: D variable offsets (mpcl_app.h) to values."""
+    def __init__(self, config: dict[int, int], bind_address: str = "127.0.0.1", port: int | None = None) -> None:
+        """config: D variable offsets (mpcl_app.h) to values; port: where to listen on this PC instead of the
+        configured port (0: any free one: several simulated cells side by side)."""
         library = build("libmpcl_host.so")
         self._copy = tempfile.TemporaryDirectory(prefix="mpcl-app-")
         private = Path(self._copy.name) / library.name
@@ -95,6 +96,7 @@ class HostApplication:
         lib.mph_set_var_d.argtypes = [ctypes.c_int, ctypes.c_int32]
         lib.mph_set_io.argtypes = [ctypes.c_uint32, ctypes.c_int]
         lib.mph_set_bind_address.argtypes = [ctypes.c_char_p]
+        lib.mph_set_bind_port.argtypes = [ctypes.c_int]
         lib.mph_set_cart_pos.argtypes = [Six]
         lib.mph_set_motion_error.argtypes = [ctypes.c_int]
         lib.mph_set_net_faults.argtypes = [ctypes.c_double, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint64]
@@ -105,6 +107,8 @@ class HostApplication:
         lib.mpcl_app_read_status.argtypes = [ctypes.POINTER(Status)]
         lib.mph_reset()
         lib.mph_set_bind_address(bind_address.encode())
+        if port is not None:
+            lib.mph_set_bind_port(port)
         for offset, value in config.items():
             lib.mph_set_var_d(CONFIG_D_BASE + offset, int(value))
         self._increment = Six()

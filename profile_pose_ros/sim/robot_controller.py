@@ -38,11 +38,11 @@ DEFAULT_LIMITS_SI = {"max_step": [2e-4] * 3 + [1e-3] * 3, "max_offset": [5e-3] *
 DEFAULT_LIMITS = ControllerLimits.from_si(**DEFAULT_LIMITS_SI)
 
 
-def configuration(limits: ControllerLimits, period_ticks: int, port: int, bridge_address: str = "") -> dict[int, int]:
+def configuration(limits: ControllerLimits, period_ticks: int, bridge_address: str = "") -> dict[int, int]:
     """The application's D variables (offsets from MPCL_CONFIG_D_BASE, mpcl_app.h) for these limits;
-    bridge_address: the one peer it accepts ("": any)."""
+    bridge_address: the one peer it accepts ("": any). The port is the host's (HostApplication)."""
     peer = int(ipaddress.IPv4Address(bridge_address)) if bridge_address else 0
-    values = [*limits.max_step, *limits.max_offset, *limits.max_speed, limits.max_watchdog_ms, period_ticks, port,
+    values = [*limits.max_step, *limits.max_offset, *limits.max_speed, limits.max_watchdog_ms, period_ticks, 0,
               int(round(TICK_S * 1e6)), peer - 2 ** 32 if peer >= 2 ** 31 else peer]  # D variables are signed
     return dict(enumerate(values))
 
@@ -64,7 +64,7 @@ class RobotController:
         self.program = np.zeros(6)  # the robot program's target offset from the start pose (m, rad)
         self.moved = np.zeros(6, dtype=np.int64)  # what mpExRcsIncrementMove was handed, summed (units)
         self.overruns = 0  # cycles whose work did not finish within the cycle
-        self.app = HostApplication(configuration(limits, period_ticks, port), host)
+        self.app = HostApplication(configuration(limits, period_ticks), host, port)
         self._pushed: tuple[float, float] | None = None
         self._periods = 0
         self._lock = threading.Lock()

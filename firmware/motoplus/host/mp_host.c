@@ -28,6 +28,7 @@ static struct {
     uint32_t io_address[MAX_IO];
     int io_value[MAX_IO], io_count;
     char bind_address[64];
+    int bind_port;              /* -1: the application's own; else this (0: any free port) */
     char bound_address[64];  /* where the application really listens */
     int port;
     int32_t pose[6];
@@ -100,6 +101,7 @@ void mph_reset(void)
     memset(host.var_d, 0, sizeof host.var_d);
     host.io_count = 0;
     strcpy(host.bind_address, "127.0.0.1");
+    host.bind_port = -1;
     host.bound_address[0] = '\0';
     host.port = -1;
     memset(host.pose, 0, sizeof host.pose);
@@ -151,6 +153,13 @@ void mph_set_bind_address(const char *ipv4)
 {
     pthread_mutex_lock(&host.mutex);
     snprintf(host.bind_address, sizeof host.bind_address, "%s", ipv4);
+    pthread_mutex_unlock(&host.mutex);
+}
+
+void mph_set_bind_port(int port)
+{
+    pthread_mutex_lock(&host.mutex);
+    host.bind_port = port;
     pthread_mutex_unlock(&host.mutex);
 }
 
@@ -404,6 +413,7 @@ int mpBind(int s, struct sockaddr *name, int namelen)
     memcpy(&address, name, sizeof address);
     pthread_mutex_lock(&host.mutex);
     inet_pton(AF_INET, host.bind_address, &address.sin_addr);  /* the host build: loopback, not every interface */
+    if (host.bind_port >= 0) address.sin_port = htons((uint16_t)host.bind_port);  /* the simulation's port */
     pthread_mutex_unlock(&host.mutex);
     setsockopt(s, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
     if (bind(s, (struct sockaddr *)&address, sizeof address) != 0) return ERROR;

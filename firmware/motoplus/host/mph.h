@@ -13,6 +13,7 @@ void mph_reset(void);                          /* before configuring a fresh con
 void mph_set_var_d(int index, int32_t value);
 void mph_set_io(uint32_t address, int value);
 void mph_set_bind_address(const char *ipv4);   /* the host build listens here (default 127.0.0.1) */
+void mph_set_bind_port(int port);              /* and on this port, not the configured one (0: any free one) */
 void mph_set_cart_pos(const int32_t pose[6]);
 void mph_set_motion_error(int code);           /* mpExRcsIncrementMove's answer from now on (0: accepted) */
 /* Network faults on what the controller sends: every STATE dropped with this probability, every frame
