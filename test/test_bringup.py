@@ -146,3 +146,28 @@ def test_a_node_whose_teardown_hangs_is_gone_after_the_grace() -> None:
     finally:
         process.kill()
     assert process.returncode != 0 and "destroy_node" in stderr, stderr  # where it hung, in its log
+
+
+def test_a_namespace_and_a_frame_prefix_keep_cells_apart(ros) -> None:
+    """sim_cell's topics are relative like every other (a namespace separates them), and --frame-prefix gives
+    every node's frames one prefix that must agree across the nodes."""
+    from rclpy.parameter import Parameter
+
+    from profile_pose_ros.nodes import motoplus_bridge, pd_compensator, pose_estimator, profiler_driver
+    from profile_pose_ros.sim import sim_cell
+    from profile_pose_ros.tools.bringup import FRAME_PARAMETERS, prefixed_frames
+
+    sim = ros.add(sim_cell.SimCellNode(context=ros.context, namespace="cell_x", parameter_overrides=[
+        Parameter(name, value=0) for name in ("profiler_port", "mcu_port", "robot_port")]))
+    assert {sim.truth_pub.topic_name, sim.applied_pub.topic_name} == {"/cell_x/sim/ground_truth",
+                                                                       "/cell_x/sim/robot_increment"}
+    frames = prefixed_frames("cell_x/")
+    assert frames["profiler_driver"]["frame_id"] == frames["pose_estimator"]["profiler_frame"] == "cell_x/profiler"
+    assert frames["pose_estimator"]["gauge_frame"] == frames["pd_compensator"]["gauge_frame"] == "cell_x/gauge"
+    assert frames["pd_compensator"]["base_frame"] == frames["motoplus_bridge"]["base_frame"] == "cell_x/base"
+    assert prefixed_frames("") == {}
+    modules = {"sim_cell": sim_cell, "profiler_driver": profiler_driver, "pose_estimator": pose_estimator,
+               "pd_compensator": pd_compensator, "motoplus_bridge": motoplus_bridge}
+    for node, names in FRAME_PARAMETERS.items():  # every frame parameter exists, with the standard default
+        params = {p.name: p.default for p in modules[node].PARAMETERS}
+        assert all(params[name] == default for name, default in names.items()), node

@@ -76,8 +76,10 @@ def test_every_installed_tool_answers_help(workspace, tool) -> None:
 def test_every_installed_node_starts_and_stops_cleanly(ros, workspace, tmp_path, executable) -> None:
     prefix, env = workspace
     args = {"sim_cell": ["-p", "profiler_port:=0", "-p", "mcu_port:=0", "-p", "robot_port:=0"],
-            "bag_recorder": ["-p", f"output:={tmp_path / 'bag'}"],
-            "bag_player": ["-p", f"bag:={_empty_bag(tmp_path / 'empty')}"]}.get(executable, [])
+            "bag_recorder": ["-p", f"output:={tmp_path / 'recorded'}"],
+            "bag_player": ["-p", f"bag:={tmp_path / 'played'}", "-p", "exit_when_done:=false"]}.get(executable, [])
+    if executable == "bag_player":
+        _one_message_bag(tmp_path / "played")
     process = subprocess.Popen([str(prefix / "lib" / "profile_pose_ros" / executable), "--ros-args", *args],
                                env=dict(env, ROS_DOMAIN_ID=str(ros.domain_id)), stdout=subprocess.PIPE,
                                stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
@@ -95,10 +97,15 @@ def test_every_installed_node_starts_and_stops_cleanly(ros, workspace, tmp_path,
             process.wait()
 
 
-def _empty_bag(path: Path) -> Path:
+def _one_message_bag(path: Path) -> Path:
+    from profile_pose_ros.bags.reader import typestore
     from profile_pose_ros.bags.writer import BagWriter
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
 
-    BagWriter(path).close()
+    writer = BagWriter(path)
+    writer.add_topic("/a", "std_msgs/msg/String")
+    writer.write("/a", 10 ** 9, bytes(typestore().serialize_cdr(String(data="a"), "std_msgs/msg/String")))
+    writer.close()
     return path
 
 

@@ -168,7 +168,8 @@ def test_the_bridge_process_sends_stop_on_every_shutdown_path(cell, tmp_path, si
             process.send_signal(signum)
         process.wait(10.0)
         assert wait_for(lambda: cell.controller.session is None)
-        assert cell.controller.session_end == end, (tmp_path / "bridge.log").read_text()
+        # SIGKILL: the controller learns of it by reading the end of the stream, or by a STATE it cannot send
+        assert cell.controller.session_end.startswith(end), (tmp_path / "bridge.log").read_text()
     finally:
         processes.stop(process)
 

@@ -113,8 +113,7 @@ static void flush(void)
     mpcl_session *s = &app.session;
     if (s->out_len == 0u) return;
     if (app.peer_fd >= 0 && mpSend(app.peer_fd, (const char *)s->out, (int)s->out_len, 0) != (int)s->out_len) {
-        mpcl_session_alarm(s, "the link to the bridge failed");
-        s->close = 1;
+        mpcl_session_lost(s, "the bridge disconnected (a send failed)");  /* no FAULT: nobody to tell */
     }
     s->out_len = 0;
 }
@@ -314,7 +313,7 @@ void mpcl_server_task(int a1, int a2, int a3, int a4, int a5, int a6, int a7, in
         if (peer >= 0 && FD_ISSET(peer, &readable)) {
             int n = mpRecv(peer, (char *)buffer, (int)sizeof buffer, 0);
             if (n <= 0) {
-                drop_peer(n == 0 ? "the bridge disconnected" : "the link to the bridge failed");
+                drop_peer(n == 0 ? "the bridge disconnected" : "the bridge disconnected (a receive failed)");
                 continue;
             }
             if (mpcl_app_received(buffer, (size_t)n)) {

@@ -332,6 +332,12 @@ void mpcl_session_alarm(mpcl_session *s, const char *why)
     if (s->armed) fault(s, MPCL_FAULT_ALARM, why);
 }
 
+void mpcl_session_lost(mpcl_session *s, const char *why)
+{
+    if (s->armed) end_session(s, why);
+    s->close = 1;
+}
+
 void mpcl_session_closed(mpcl_session *s, const char *why)
 {
     if (s->armed) end_session(s, why);

@@ -77,6 +77,8 @@ int mpcl_session_period(mpcl_session *s, uint32_t now_ms, uint64_t time_us, cons
                         int32_t step[6]);
 /* The motion call failed: latch a FAULT (controller alarm). */
 void mpcl_session_alarm(mpcl_session *s, const char *text);
+/* Sending failed: the session ends (nothing can tell the peer why) and the owner drops the connection. */
+void mpcl_session_lost(mpcl_session *s, const char *why);
 /* The connection is gone (the peer left, or the owner dropped it). */
 void mpcl_session_closed(mpcl_session *s, const char *why);
 

@@ -1,5 +1,6 @@
 """sim_cell: the simulated cell as a ROS node: the profiler on TCP, the trigger MCU as a pyserial
-socket:// URL, /sim/ground_truth, /diagnostics, and faults switched by parameters at run time."""
+socket:// URL, sim/ground_truth (relative, like every topic: a namespace separates cells), /diagnostics, and
+faults switched by parameters at run time."""
 from __future__ import annotations
 
 import math
@@ -35,7 +36,7 @@ GIL_SWITCH_INTERVAL = 2e-4  # s; CPython's default is 5 ms
 
 PARAMETERS = [
     Param("gauge_file", "", "Gauge YAML; empty: the shipped config/gauge_paper_n5.yaml.", read_only=True),
-    Param("gauge_frame", "gauge", "frame_id of /sim/ground_truth.", read_only=True),
+    Param("gauge_frame", "gauge", "frame_id of sim/ground_truth.", read_only=True),
     Param("host", "127.0.0.1", "Address the simulated devices listen on.", read_only=True),
     Param("profiler_port", 24692, "Profiler data port (0: any free port, see the log).", 0, 65535, read_only=True),
     Param("mcu_port", 24693, "Trigger MCU port, for serial_url socket://host:port (0: any free port).", 0, 65535,
@@ -154,8 +155,8 @@ class SimCellNode(Node):
                                          ControllerFaults(), seed=v["seed"] + 3, on_applied=self._publish_applied,
                                          limits=limits)
         self._apply_faults(v)
-        self.truth_pub = self.create_publisher(PoseStamped, "/sim/ground_truth", 100)
-        self.applied_pub = self.create_publisher(TwistStamped, "/sim/robot_increment", 100)
+        self.truth_pub = self.create_publisher(PoseStamped, "sim/ground_truth", 100)
+        self.applied_pub = self.create_publisher(TwistStamped, "sim/robot_increment", 100)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.cell.start()

@@ -26,6 +26,20 @@ ALIVE_TOPICS = {"profile": "sensor_msgs/msg/PointCloud2", "pose": "geometry_msgs
                 "correction": "geometry_msgs/msg/TwistStamped"}  # each must carry messages before "ready"
 
 
+FRAME_PARAMETERS = {"sim_cell": {"gauge_frame": "gauge"}, "profiler_driver": {"frame_id": "profiler"},
+                    "pose_estimator": {"profiler_frame": "profiler", "gauge_frame": "gauge"},
+                    "pd_compensator": {"gauge_frame": "gauge", "base_frame": "base"},
+                    "motoplus_bridge": {"base_frame": "base"}}
+
+
+def prefixed_frames(prefix: str) -> dict[str, dict[str, str]]:
+    """Each node's frame parameters with `prefix` before the standard names (cell2/profiler, cell2/gauge,
+    cell2/base), so two cells' poses and TF never share a frame; {} for no prefix."""
+    if not prefix:
+        return {}
+    return {node: {name: prefix + frame for name, frame in frames.items()} for node, frames in FRAME_PARAMETERS.items()}
+
+
 def discovery_range(requested: str | None, environ: dict) -> str:
     """DDS discovery stays on this machine unless told otherwise (--discovery-range, or
     ROS_AUTOMATIC_DISCOVERY_RANGE already set): nothing on the cell network sees or feeds the graph."""
@@ -37,8 +51,10 @@ def discovery_range(requested: str | None, environ: dict) -> str:
 
 class Bringup:
     def __init__(self, out: Path, params_file: Path, namespace: str = "", hardware: bool = False,
-                 record: bool = False, domain_id: int | None = None, composed: bool = False) -> None:
+                 record: bool = False, domain_id: int | None = None, composed: bool = False,
+                 frame_prefix: str = "") -> None:
         self.out, self.hardware, self.record, self.composed = out, hardware, record, composed
+        self.frames = prefixed_frames(frame_prefix)
         self.graph = Graph(out, domain_id=domain_id, client_name="bringup", namespace=namespace,
                            params_file=params_file)
         self.seen: dict[str, int] = {topic: 0 for topic in ALIVE_TOPICS}
@@ -50,10 +66,11 @@ class Bringup:
         driver, bridge = {}, {}
         if not self.hardware:  # ports of its own: several simulated cells side by side
             profiler, mcu, robot = free_port(), free_port(), free_port()
-            g.start("sim_cell", {"profiler_port": profiler, "mcu_port": mcu, "robot_port": robot})
+            g.start("sim_cell", {"profiler_port": profiler, "mcu_port": mcu, "robot_port": robot,
+                                 **self.frames.get("sim_cell", {})})
             driver = {"port": profiler, "serial_url": f"socket://127.0.0.1:{mcu}"}
             bridge = {"port": robot}
-        params = dict(zip(NODES, (driver, {}, {}, bridge)))
+        params = {node: {**own, **self.frames.get(node, {})} for node, own in zip(NODES, (driver, {}, {}, bridge))}
         if self.composed:
             g.start_composed(params)
         else:
@@ -113,6 +130,8 @@ def main(argv=None) -> int:
     parser.add_argument("--hardware", action="store_true", help="no sim_cell: the nodes talk to the real devices")
     parser.add_argument("--params-file", help="default: config/cell.yaml (simulated), config/hardware.yaml")
     parser.add_argument("--namespace", default="", help="e.g. cell2: every node and topic under /cell2")
+    parser.add_argument("--frame-prefix", default="", help="e.g. cell2/: frames cell2/profiler, cell2/gauge, "
+                        "cell2/base (overrides the parameter file's frame names)")
     parser.add_argument("--record", action="store_true", help="also record the cell's topics (bag_recorder)")
     parser.add_argument("--composed", action="store_true", help="the four nodes in one cell_container process")
     parser.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: the environment's, else 0)")
@@ -130,7 +149,8 @@ def main(argv=None) -> int:
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = discovery = discovery_range(args.discovery_range, os.environ)
     out = run_dir(args.out, f"bringup{'-' + args.namespace.strip('/') if args.namespace else ''}")
     stop = StopRequest().install()
-    cell = Bringup(out, params_file, args.namespace, args.hardware, args.record, domain_id, args.composed)
+    cell = Bringup(out, params_file, args.namespace, args.hardware, args.record, domain_id, args.composed,
+                   args.frame_prefix)
     code = 0
     try:
         cell.start()

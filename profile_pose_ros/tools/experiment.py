@@ -153,7 +153,7 @@ class Experiment:
         self.poses: list[tuple[float, np.ndarray]] = []
         self.truth: list[tuple[float, np.ndarray]] = []
         self._streams = [graph.subscribe_fast(PoseStamped, "pose", self._on_pose),
-                         graph.subscribe_fast(PoseStamped, "/sim/ground_truth",
+                         graph.subscribe_fast(PoseStamped, "sim/ground_truth",
                                               lambda m: self.truth.append(self._sample(m)))]
         self.reference_pub = node.create_publisher(PoseStamped, "reference_pose", 10)
         self.home: tuple[np.ndarray, np.ndarray] | None = None

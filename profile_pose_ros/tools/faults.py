@@ -161,7 +161,7 @@ class FaultRun:
         self.input_timeout = float(_DEFAULTS["input_timeout"])
         self.applied: list[tuple[float, np.ndarray]] = []
         self.moving_corrections: list[float] = []
-        graph.node.create_subscription(TwistStamped, "/sim/robot_increment", self._on_applied, 1000)
+        graph.node.create_subscription(TwistStamped, "sim/robot_increment", self._on_applied, 1000)
         graph.node.create_subscription(TwistStamped, "correction", self._on_correction, 1000)
         from geometry_msgs.msg import PoseWithCovarianceStamped
 

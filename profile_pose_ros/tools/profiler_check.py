@@ -41,7 +41,7 @@ class CheckRun:
         self.profile_stamps: list[int] = []
         self.poses: list[tuple[int, np.ndarray, np.ndarray]] = []
         node = graph.node
-        node.create_subscription(PoseStamped, "/sim/ground_truth", self._on_truth, 5000)
+        node.create_subscription(PoseStamped, "sim/ground_truth", self._on_truth, 5000)
         if watch_profiles:  # else the poses' stamps (copied from their profiles) stand for them: less load
             node.create_subscription(PointCloud2, "profile", self._on_profile, qos_profile_sensor_data, raw=True)
         node.create_subscription(PoseStamped, "pose", self._on_pose, 5000)
