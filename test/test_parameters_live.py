@@ -41,20 +41,28 @@ def changed(param, current):
     return current + 1 if isinstance(current, int) else 0.5 * current
 
 
-@pytest.mark.parametrize("name", sorted(NODES))
-def test_every_writable_parameter_takes_effect_at_run_time(ros, name) -> None:
+def node_and_setter(ros, name: str):
+    """The node, its PARAMETERS, and a function that sets one of them through the parameter service."""
     module, factory = NODES[name]
     node = ros.add(factory(ros.context))
     client = AsyncParameterClient(ros.node(f"{name}_setter"), node.get_name())
     assert client.wait_for_services(timeout_sec=10.0)
-    writable = [p for p in module.PARAMETERS if not p.read_only]
-    for param in writable:
+
+    def set_one(param_name: str, value):
+        future = client.set_parameters([Parameter(param_name, value=value)])
+        assert ros.spin_until(future.done, 10.0), param_name
+        return future.result().results[0]
+    return node, module.PARAMETERS, set_one
+
+
+@pytest.mark.parametrize("name", sorted(NODES))
+def test_every_writable_parameter_takes_effect_at_run_time(ros, name) -> None:
+    node, parameters, set_one = node_and_setter(ros, name)
+    for param in [p for p in parameters if not p.read_only]:
         value = changed(param, node.values[param.name])
         current = node.values[param.name]
         assert value != (list(current) if isinstance(value, list) else current), param.name
-        future = client.set_parameters([Parameter(param.name, value=value)])
-        assert ros.spin_until(future.done, 10.0), param.name
-        result = future.result().results[0]
+        result = set_one(param.name, value)
         assert result.successful, (param.name, value, result.reason)
         applied = node.values[param.name]
         assert (list(applied) if isinstance(value, list) else applied) == value, (param.name, "accepted, not applied")
@@ -62,11 +70,6 @@ def test_every_writable_parameter_takes_effect_at_run_time(ros, name) -> None:
 
 @pytest.mark.parametrize("name", sorted(NODES))
 def test_a_read_only_parameter_is_refused_at_run_time(ros, name) -> None:
-    module, factory = NODES[name]
-    node = ros.add(factory(ros.context))
-    client = AsyncParameterClient(ros.node(f"{name}_setter"), node.get_name())
-    assert client.wait_for_services(timeout_sec=10.0)
-    param = next(p for p in module.PARAMETERS if p.read_only)
-    future = client.set_parameters([Parameter(param.name, value=changed(param, node.values[param.name]))])
-    assert ros.spin_until(future.done, 10.0)
-    assert not future.result().results[0].successful  # `ros2 param set` prints the refusal
+    node, parameters, set_one = node_and_setter(ros, name)
+    param = next(p for p in parameters if p.read_only)
+    assert not set_one(param.name, changed(param, node.values[param.name])).successful  # ros2 param set says so

@@ -27,3 +27,14 @@ def _text(value) -> str:
     if isinstance(value, float):
         return f"{value:.6g}"
     return str(value)
+
+
+class RefusalCounter:
+    """For a Node that refuses inputs: `self.refused` counts them by reason (its /diagnostics show the
+    counts), and each is logged, at most once a second per call site."""
+
+    refused: dict[str, int]
+
+    def _refuse(self, why: str, text: str) -> None:
+        self.refused[why] += 1
+        self.get_logger().error(text, throttle_duration_sec=1.0)

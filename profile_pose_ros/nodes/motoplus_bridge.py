@@ -30,7 +30,7 @@ from ..core.latency_window import LatencyWindow
 from ..core.pose_cdr import CdrFormatError, decode_twist_cdr, encode_pose_cdr, encode_twist_cdr
 from ..core.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
-from .diagnostics import ERROR, OK, WARN, diagnostic_array
+from .diagnostics import ERROR, OK, WARN, RefusalCounter, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .local_topics import LOOP_INPUT_QOS, LocalTopics
 from .parameters import Param, declare_all, updated
@@ -82,7 +82,7 @@ def limits_from(v: dict) -> SessionLimits:
     return SessionLimits(v["period"], tuple(v["max_step"]), tuple(v["max_offset"]), v["watchdog"], FRAMES[v["frame"]])
 
 
-class MotoPlusBridgeNode(Node):
+class MotoPlusBridgeNode(RefusalCounter, Node):
     def __init__(self, local: LocalTopics | None = None, **kwargs) -> None:
         """local: the composed nodes' topics (cell_container): corrections arrive in the compensator's thread."""
         super().__init__(NODE_NAME, **kwargs)
@@ -157,10 +157,6 @@ class MotoPlusBridgeNode(Node):
             self._velocities.append((stamp, velocity, received))
             self._latest, self._latest_arrival = (stamp, velocity), received
             self._fresh.notify()
-
-    def _refuse(self, why: str, text: str) -> None:
-        self.refused[why] += 1
-        self.get_logger().error(text, throttle_duration_sec=1.0)
 
     def _await_correction(self, state_wall_time: float) -> None:
         """Socket thread: hold this STATE's answer until a correction from this period's measurement is here

@@ -30,7 +30,7 @@ from ..core.latency_window import LatencyWindow
 from ..core.modal_control import ModalController, ModalDesign
 from ..core.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
 from ..core.rotation import rotation_from_quaternion_xyzw
-from .diagnostics import OK, WARN, diagnostic_array
+from .diagnostics import OK, WARN, RefusalCounter, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .local_topics import LOOP_INPUT_QOS, LocalTopics, LoopOutput
 from .messages import rotation_translation
@@ -127,7 +127,7 @@ def gains_from(values: dict) -> Gains:
     return gains
 
 
-class PdCompensatorNode(Node):
+class PdCompensatorNode(RefusalCounter, Node):
     def __init__(self, local: LocalTopics | None = None, **kwargs) -> None:
         """local: the composed nodes' topics (cell_container): poses arrive in the estimator's thread and
         corrections go to the bridge of this process the same way; the watchdog is then the container's."""
@@ -192,10 +192,6 @@ class PdCompensatorNode(Node):
             if np.isfinite(anchor).all():  # a corrupt first pose (NaN) must not spoil every later one
                 self.anchor = anchor
         return pose_vector_in_base(rotation, translation, self.mounting, anchor)
-
-    def _refuse(self, why: str, text: str) -> None:
-        self.refused[why] += 1
-        self.get_logger().error(text, throttle_duration_sec=1.0)
 
     def _on_reference(self, msg: PoseStamped) -> None:
         v = self.values

@@ -11,6 +11,7 @@ Deterministic for a seed. CI runs a small budget (test/test_fuzz.py); the defaul
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import time
 import zlib
@@ -202,9 +203,7 @@ def targets() -> list[Target]:
 def _node_targets() -> list[Target]:
     """Decoded values through pd_compensator and motoplus_bridge themselves (tools/node_fuzz.py), when
     rclpy is importable; the nodes are made at the first case."""
-    try:
-        import rclpy  # noqa: F401
-    except ImportError:
+    if importlib.util.find_spec("rclpy") is None:
         return []
     chain: list[node_fuzz.NodeChain] = []
 
