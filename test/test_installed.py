@@ -5,6 +5,7 @@ comes first. The bringup from the install starts the nodes themselves (never a `
 would swallow their stop) and leaves nothing behind."""
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -133,8 +134,9 @@ def test_the_bringup_from_the_install_owns_its_nodes(workspace, tmp_path, how) -
 
     prefix, env = workspace
     domain = fresh_domain_id()
+    record = ["--record"] if how == "SIGTERM" else []
     bringup = subprocess.Popen([str(prefix / "lib" / "profile_pose_ros" / "profile_pose_bringup"), "--domain-id",
-                                str(domain), "--out", str(tmp_path)], env=dict(env, ROS_DOMAIN_ID=str(domain)),
+                                str(domain), "--out", str(tmp_path), *record], env=dict(env, ROS_DOMAIN_ID=str(domain)),
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         lines = []
@@ -144,7 +146,7 @@ def test_the_bringup_from_the_install_owns_its_nodes(workspace, tmp_path, how) -
                 break
         assert any(line.startswith("ready in") for line in lines), "".join(lines)
         nodes = [pid for pid in domain_processes(domain) if pid != bringup.pid]
-        assert len(nodes) == 5 and all(parent(pid) == bringup.pid for pid in nodes)  # no wrapper between
+        assert len(nodes) == 5 + len(record) and all(parent(pid) == bringup.pid for pid in nodes)  # no wrapper
         scripts = [Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[1].decode() for pid in nodes]
         assert all(Path(script).is_relative_to(prefix) for script in scripts), scripts  # python <installed exe>
         bringup.send_signal(getattr(signal, how))
@@ -156,6 +158,17 @@ def test_the_bringup_from_the_install_owns_its_nodes(workspace, tmp_path, how) -
         if how == "SIGTERM":
             output = bringup.stdout.read()
             assert bringup.returncode == 0 and "stopped" in output, output
+            # the recording re-estimated offline by the installed replay, with the installed cell.yaml: the
+            # estimator's poses bit for bit
+            bag = next(tmp_path.glob("*-bringup/bag"))
+            script = ("import json, sys; from profile_pose_ros.tools.replay import estimator_values, replay; "
+                      "print(json.dumps(replay(sys.argv[1], estimator_values(sys.argv[2], {}))))")
+            cell_yaml = prefix / "share" / "profile_pose_ros" / "config" / "cell.yaml"
+            run = subprocess.run([sys.executable, "-c", script, str(bag), str(cell_yaml)], capture_output=True,
+                                 text=True, env=env, cwd="/", timeout=300)
+            assert run.returncode == 0, run.stderr
+            report = json.loads(run.stdout.splitlines()[-1])
+            assert report["different"] == 0 and report["identical"] > 50, report
     finally:
         if bringup.poll() is None:
             bringup.kill()
