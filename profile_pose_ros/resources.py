@@ -7,19 +7,24 @@ from pathlib import Path
 PACKAGE = "profile_pose_ros"
 
 
+def ament_prefix() -> Path | None:
+    """The install prefix the ament index (AMENT_PREFIX_PATH) has for this package, if any: a colcon
+    install (share/, lib/profile_pose_ros/ under it)."""
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+    except ImportError:
+        return None
+    try:
+        return Path(get_package_prefix(PACKAGE))
+    except (PackageNotFoundError, ValueError, OSError):  # OSError: no AMENT_PREFIX_PATH (pip install)
+        return None
+
+
 def shipped_path(*parts: str) -> Path:
     """A shipped file or folder (config/..., firmware/...): the colcon share dir, then the pip data_files
     prefix, then the source tree; the last candidate when none exists."""
-    candidates = []
-    try:
-        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
-
-        try:
-            candidates.append(Path(get_package_share_directory(PACKAGE)).joinpath(*parts))
-        except (PackageNotFoundError, ValueError, OSError):  # OSError: no AMENT_PREFIX_PATH (pip install)
-            pass
-    except ImportError:
-        pass
+    prefix = ament_prefix()
+    candidates = [] if prefix is None else [prefix.joinpath("share", PACKAGE, *parts)]
     candidates.append(Path(sys.prefix).joinpath("share", PACKAGE, *parts))
     candidates.append(Path(__file__).resolve().parent.parent.joinpath(*parts))
     for candidate in candidates:

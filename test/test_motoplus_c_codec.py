@@ -12,8 +12,9 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from profile_pose_ros.core import motoplus_protocol as mp
+from profile_pose_ros.sim.motoplus_app import STRICT, sanitizers
 from profile_pose_ros.tools import motoplus_vectors
-from profile_pose_ros.tools.c_codec import (ERROR_NAMES, SOURCE, STRICT, CCodec, available, same_frame,
+from profile_pose_ros.tools.c_codec import (ERROR_NAMES, SOURCE, CCodec, available, same_frame,
                                             same_outcome)
 from test_motoplus_protocol import BODIES, U32
 
@@ -30,20 +31,12 @@ def test_the_vectors_file_is_what_the_python_codec_writes() -> None:
     assert errors == set(mp.RULES) - {"short"}  # every rule a stream can break ("short": decode() alone)
 
 
-def _sanitizers_work(tmp_path) -> list[str]:
-    flags = ["-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
-    probe = tmp_path / "probe.c"
-    probe.write_text("int main(void) { return 0; }\n")
-    ok = subprocess.run(["cc", *flags, str(probe), "-o", str(tmp_path / "probe")], capture_output=True).returncode == 0
-    return flags if ok else []
-
-
 @needs_cc
 @pytest.mark.skipif(not shutil.which("make"), reason="no make")
 def test_the_c_codec_passes_the_shared_vectors_and_a_wrong_vector_fails_it(tmp_path) -> None:
     work = tmp_path / "motoplus"
     shutil.copytree(SOURCE, work, ignore=shutil.ignore_patterns("mpcl_selftest"))
-    flags = " ".join(STRICT + _sanitizers_work(tmp_path))
+    flags = " ".join(STRICT + sanitizers(tmp_path))
     result = subprocess.run(["make", "check", f"CFLAGS={flags}"], cwd=work, capture_output=True, text=True,
                             timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr

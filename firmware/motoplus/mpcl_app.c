@@ -225,14 +225,14 @@ void mpcl_app_cycle(void)
         memcpy(app.remaining, app.period_step, sizeof app.remaining);
         flush();  /* a failed STATE ends the session before any of the step is handed out */
     }
-    if (app.session.armed) {
+    if (app.session.armed && !app.session.close) {  /* a session whose link failed moves no more */
         share(increment, app.period_cycles - (phase == 0u ? 0u : phase));
         for (i = 0; i < 6; ++i) any |= increment[i] != 0;
         if (any && move(increment) != 0) {
             for (i = 0; i < 6; ++i) app.remaining[i] += increment[i];  /* not applied either */
         }
     }
-    if (!app.session.armed) drop_remaining();
+    if (!app.session.armed || app.session.close) drop_remaining();
     mpSemGive(app.lock);
 }
 
@@ -252,6 +252,7 @@ void mpcl_app_read_status(mpcl_app_status *out)
     out->connected = app.session.connected;
     out->configured = app.configured;
     out->pending = app.session.pending;
+    out->closing = app.session.close;
     memcpy(out->config_error, app.config_error, sizeof out->config_error);
     mpSemGive(app.lock);
 }
@@ -263,6 +264,25 @@ static void drop_peer(const char *why)
     int fd = app.peer_fd;
     mpcl_app_gone(why);
     if (fd >= 0) mpClose(fd);
+}
+
+/* The controller drops the connection, after reading what the peer had already sent: a STOP that came
+ * just before the link failed ends the session as the STOP it was. */
+static void read_then_drop(int peer, uint8_t *buffer, int capacity)
+{
+    int round;
+    for (round = 0; round < 8; ++round) {
+        fd_set readable;
+        struct timeval now = {0, 0};
+        int n;
+        FD_ZERO(&readable);
+        FD_SET(peer, &readable);
+        if (mpSelect(peer + 1, &readable, NULL, NULL, &now) <= 0) break;
+        n = mpRecv(peer, (char *)buffer, capacity, 0);
+        if (n <= 0) break;
+        mpcl_app_received(buffer, (size_t)n);
+    }
+    drop_peer("dropped by the controller");
 }
 
 void mpcl_server_task(int a1, int a2, int a3, int a4, int a5, int a6, int a7, int a8, int a9, int a10)
@@ -317,11 +337,11 @@ void mpcl_server_task(int a1, int a2, int a3, int a4, int a5, int a6, int a7, in
                 continue;
             }
             if (mpcl_app_received(buffer, (size_t)n)) {
-                drop_peer("dropped by the controller");
+                read_then_drop(peer, buffer, (int)sizeof buffer);
                 continue;
             }
         }
-        if (peer >= 0 && mpcl_app_poll()) drop_peer("dropped by the controller");
+        if (peer >= 0 && mpcl_app_poll()) read_then_drop(peer, buffer, (int)sizeof buffer);
     }
     if (app.peer_fd >= 0) drop_peer("the application stopped");
     mpClose(app.listen_fd);

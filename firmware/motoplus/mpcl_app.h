@@ -68,6 +68,7 @@ typedef struct {
     uint32_t motion_errors;     /* mpExRcsIncrementMove refusals */
     int armed, connected, configured;
     int pending;                /* a CORRECTION waits for the next period */
+    int closing;                /* the connection is being dropped (a fault, STOP, or a failed send) */
     char config_error[MPCL_TEXT];
 } mpcl_app_status;
 void mpcl_app_read_status(mpcl_app_status *out);

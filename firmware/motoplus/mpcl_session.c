@@ -111,6 +111,7 @@ void mpcl_session_open(mpcl_session *s, uint32_t now_ms)
     s->connected = 1;
     s->armed = 0;
     s->close = 0;
+    s->lost = NULL;
     s->pending = 0;
     s->connected_ms = s->last_frame_ms = now_ms;
     s->peer_seq = 0;
@@ -242,16 +243,22 @@ static void handle(mpcl_session *s, const mpcl_frame *frame, uint32_t now_ms)
     }
 }
 
+/* Frames are still taken: no close pending, or the link lost while the session lasts (its STOP counts). */
+static int taking(const mpcl_session *s)
+{
+    return !s->close || (s->lost != NULL && s->armed);
+}
+
 int mpcl_session_feed(mpcl_session *s, const uint8_t *data, size_t length, uint32_t now_ms)
 {
     mpcl_frame frame;
     char why[MPCL_TEXT];
-    while (!s->close) {
+    while (taking(s)) {
         size_t taken = mpcl_reader_feed(&s->reader, data, length);
         int got;
         data += taken;
         length -= taken;
-        while (!s->close && (got = mpcl_reader_next(&s->reader, &frame)) != 0) {
+        while (taking(s) && (got = mpcl_reader_next(&s->reader, &frame)) != 0) {
             if (got < 0) {
                 snprintf(why, sizeof why, "protocol error: %s", mpcl_error_name(got));
                 fault(s, MPCL_FAULT_PROTOCOL, why);
@@ -334,13 +341,13 @@ void mpcl_session_alarm(mpcl_session *s, const char *why)
 
 void mpcl_session_lost(mpcl_session *s, const char *why)
 {
-    if (s->armed) end_session(s, why);
+    if (s->lost == NULL) s->lost = why;
     s->close = 1;
 }
 
 void mpcl_session_closed(mpcl_session *s, const char *why)
 {
-    if (s->armed) end_session(s, why);
+    if (s->armed) end_session(s, s->lost != NULL ? s->lost : why);
     s->connected = 0;
     s->armed = 0;
     s->close = 0;

@@ -43,6 +43,7 @@ typedef struct {
     mpcl_limits limits;
     int connected, armed;
     int close;                /* the socket's owner must drop the connection (after sending `out`) */
+    const char *lost;         /* sending failed (why): no motion, but what the peer sent still counts */
     int ready;                /* the controller can move (servo on, play, remote, no alarm): last period */
     uint32_t connected_ms, last_frame_ms;
     mpcl_reader reader;
@@ -77,7 +78,9 @@ int mpcl_session_period(mpcl_session *s, uint32_t now_ms, uint64_t time_us, cons
                         int32_t step[6]);
 /* The motion call failed: latch a FAULT (controller alarm). */
 void mpcl_session_alarm(mpcl_session *s, const char *text);
-/* Sending failed: the session ends (nothing can tell the peer why) and the owner drops the connection. */
+/* Sending failed: nothing moves from now on and the owner drops the connection, but bytes already received
+ * are still read (a STOP sent just before the peer left ends the session as STOP); if none ends it, the
+ * drop ends it with `why`. No FAULT: nothing can tell the peer. */
 void mpcl_session_lost(mpcl_session *s, const char *why);
 /* The connection is gone (the peer left, or the owner dropped it). */
 void mpcl_session_closed(mpcl_session *s, const char *why);

@@ -20,7 +20,8 @@ from ..resources import shipped_path
 
 SOURCES = ("mpcl.c", "mpcl_session.c", "mpcl_app.c", "host/mp_host.c")
 HEADERS = ("mpcl.h", "mpcl_session.h", "mpcl_app.h", "host/motoPlus.h", "host/mph.h")
-FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2", "-D_DEFAULT_SOURCE", "-pthread")
+STRICT = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2")  # what the controller's toolchain gets too
+FLAGS = (*STRICT, "-D_DEFAULT_SOURCE", "-pthread")
 SANITIZERS = ("-fsanitize=address,undefined", "-fno-sanitize-recover=all", "-fno-omit-frame-pointer", "-g")
 CONFIG_D_BASE = 80  # MPCL_CONFIG_D_BASE: where the application reads its configuration (mpcl_app.h)
 TEXT = 160
@@ -34,6 +35,15 @@ def firmware_dir() -> Path:
 
 def compiler() -> str | None:
     return shutil.which(os.environ.get("CC", "cc"))
+
+
+def sanitizers(workdir: Path) -> tuple[str, ...]:
+    """SANITIZERS if this compiler and its runtime support them (a probe program links), else ()."""
+    probe = workdir / "sanitizer_probe.c"
+    probe.write_text("int main(void) { return 0; }\n")
+    linked = subprocess.run([compiler() or "cc", *SANITIZERS, str(probe), "-o", str(workdir / "sanitizer_probe")],
+                            capture_output=True, timeout=120).returncode == 0
+    return SANITIZERS if linked else ()
 
 
 def build(output: str, sources: tuple[str, ...] = SOURCES, flags: tuple[str, ...] = ("-shared", "-fPIC"),
@@ -75,7 +85,7 @@ class Status(ctypes.Structure):
                 ("session_watchdog_ms", ctypes.c_uint32),
                 ("periods", ctypes.c_uint32), ("cycles", ctypes.c_uint32), ("motion_errors", ctypes.c_uint32),
                 ("armed", ctypes.c_int), ("connected", ctypes.c_int), ("configured", ctypes.c_int),
-                ("pending", ctypes.c_int),
+                ("pending", ctypes.c_int), ("closing", ctypes.c_int),
                 ("config_error", ctypes.c_char * TEXT)]
 
 
@@ -101,7 +111,8 @@ class HostApplication:
         lib.mph_set_motion_error.argtypes = [ctypes.c_int]
         lib.mph_set_net_faults.argtypes = [ctypes.c_double, ctypes.c_uint32, ctypes.c_uint32, ctypes.c_uint64]
         lib.mph_tick.argtypes = [ctypes.c_uint32]
-        lib.mph_take_increment.argtypes = [Six, ctypes.POINTER(ctypes.c_uint32)]
+        lib.mph_take_increment.argtypes = [Six]
+        lib.mph_overruns.restype = ctypes.c_uint32
         lib.mph_last_alarm.restype = ctypes.c_char_p
         lib.mph_bound_address.restype = ctypes.c_char_p
         lib.mpcl_app_read_status.argtypes = [ctypes.POINTER(Status)]
@@ -112,7 +123,6 @@ class HostApplication:
         for offset, value in config.items():
             lib.mph_set_var_d(CONFIG_D_BASE + offset, int(value))
         self._increment = Six()
-        self._calls = ctypes.c_uint32()
         self.running = False
 
     def start(self) -> int:
@@ -129,12 +139,17 @@ class HostApplication:
             raise RuntimeError(f"the MotoPlus application did not start: {self.alarm() or 'no listening socket'}")
         return port
 
-    def tick(self, pose_units: tuple[int, ...], timeout_s: float = 0.004) -> tuple[bool, tuple[int, ...]]:
-        """One interpolation cycle with the arm at `pose_units`: (overran, the increment it was told to move)."""
+    def tick(self, pose_units: tuple[int, ...], timeout_s: float = 0.004) -> tuple[int, ...]:
+        """One interpolation cycle with the arm at `pose_units`: the increment it was told to move. A cycle
+        whose work outlasts `timeout_s` is not waited for (overruns() counts it)."""
         self.lib.mph_set_cart_pos(Six(*pose_units))
-        late = bool(self.lib.mph_tick(int(timeout_s * 1e6)))
-        self.lib.mph_take_increment(self._increment, ctypes.byref(self._calls))
-        return late, tuple(self._increment)
+        self.lib.mph_tick(int(timeout_s * 1e6))
+        self.lib.mph_take_increment(self._increment)
+        return tuple(self._increment)
+
+    def overruns(self) -> int:
+        """Cycles whose work did not finish within the cycle, or that came while the task was late."""
+        return self.lib.mph_overruns()
 
     def status(self) -> Status:
         status = Status()

@@ -55,7 +55,6 @@ class RobotController:
         """on_applied(wall time, increment in units): every armed period, the step the application committed
         (spread over the period's cycles; zeros when it held): the witness the safety checks judge by."""
         self.arm = arm
-        self.limits = limits
         self.on_period = on_period
         self.on_applied = on_applied
         self.period_ticks = period_ticks
@@ -63,7 +62,6 @@ class RobotController:
         self.seed = seed
         self.program = np.zeros(6)  # the robot program's target offset from the start pose (m, rad)
         self.moved = np.zeros(6, dtype=np.int64)  # what mpExRcsIncrementMove was handed, summed (units)
-        self.overruns = 0  # cycles whose work did not finish within the cycle
         self.app = HostApplication(configuration(limits, period_ticks), host, port)
         self._pushed: tuple[float, float] | None = None
         self._periods = 0
@@ -122,6 +120,18 @@ class RobotController:
     def session_end(self) -> str:
         return self.app.status().stats.session_end.decode(errors="replace")
 
+    def report(self) -> dict:
+        """What sim_cell's /diagnostics show of the controller, from one read of the application's status."""
+        status = self.app.status()
+        s = status.stats
+        return {"robot_port": self.port, "robot_armed": bool(status.armed), "robot_states": s.states,
+                "robot_faults": s.faults, "robot_last_fault": s.last_fault.decode(errors="replace") or "none",
+                "robot_clamped": s.clamped, "robot_idle_connections_closed": s.idle_closed,
+                "robot_corrections_replaced": s.replaced,
+                "robot_session_end": s.session_end.decode(errors="replace") or "none",
+                "robot_sessions_ended": s.sessions_ended, "robot_clock_overruns": self.app.overruns(),
+                "arm_offset_um": [round(x * 1e6, 1) for x in self.arm.position[:3]]}
+
     # ---------------------------------------------------------------- the clock
     def _push_faults(self) -> None:
         f = self.faults
@@ -144,9 +154,7 @@ class RobotController:
                 self.arm.command = self.program + np.array(mp.units_to_metres(self.moved))
                 self.arm.advance(TICK_S)
                 pose = mp.metres_to_units(self.arm.position)
-            late, increment = self.app.tick(pose)
-            self.overruns += int(late)
-            self.moved += increment
+            self.moved += self.app.tick(pose)
             tick += 1
             if tick % self.period_ticks == 0:
                 self._period(int(deadline * 1e9))

@@ -234,12 +234,7 @@ class SimCellNode(Node):
                   "mcu_closes": m.closes, "mcu_reboots": m.reboots,
                   "profiler_port": p.port, "mcu_url": m.url, **faults}
         if self.robot is not None:
-            r = self.robot
-            values.update({"robot_port": r.port, "robot_armed": r.session is not None, "robot_states": r.states_sent,
-                           "robot_faults": r.faults_raised, "robot_last_fault": r.last_fault[1] or "none",
-                           "robot_clamped": r.clamped, "robot_idle_connections_closed": r.idle_closed, "robot_corrections_replaced": r.replaced,
-                           "robot_session_end": r.session_end or "none", "robot_sessions_ended": r.sessions_ended,
-                           "arm_offset_um": [round(x * 1e6, 1) for x in r.arm.position[:3]]})
+            values.update(self.robot.report())
         self.diagnostics_pub.publish(diagnostic_array(self, "cell",
                                                       "sim_cell", level, message, values))
 

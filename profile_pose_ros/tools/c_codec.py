@@ -3,33 +3,27 @@ the Python codec's answer to the same bytes: the tests and profile_pose_fuzz com
 from __future__ import annotations
 
 import ctypes
-import shutil
-import subprocess
-import tempfile
-from pathlib import Path
 
 from ..core import motoplus_protocol as mp
+from ..sim.motoplus_app import build, compiler, firmware_dir
 from .motoplus_vectors import flatten, python_read
 
-SOURCE = Path(__file__).resolve().parent.parent.parent / "firmware" / "motoplus"  # a source checkout
-STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2"]
+SOURCE = firmware_dir()  # a source checkout's, else the installed copy
 ERROR_NAMES = ["ok", *mp.RULES, "capacity"]  # enum mpcl_error, negated
 
 
 def available() -> bool:
-    """A C compiler and the sources (a source checkout, not an installed package)."""
-    return bool(shutil.which("cc")) and (SOURCE / "mpcl.c").is_file()
+    """A C compiler and the firmware's sources."""
+    return compiler() is not None and (SOURCE / "mpcl.c").is_file()
 
 
 class CCodec:
     def __init__(self) -> None:
-        """Compiles mpcl.c and its self-test helpers into a shared library (strict C99, warnings are
-        errors) and loads it."""
-        with tempfile.TemporaryDirectory(prefix="mpcl-") as directory:  # loaded, the file may go
-            library = Path(directory) / "libmpcl.so"
-            subprocess.run(["cc", *STRICT, "-shared", "-fPIC", "-DMPCL_SELFTEST_NO_MAIN", "-o", str(library),
-                            str(SOURCE / "mpcl.c"), str(SOURCE / "mpcl_selftest.c")], check=True, timeout=120)
-            self.lib = ctypes.CDLL(str(library))
+        """mpcl.c and its self-test helpers as a shared library (strict C99, warnings are errors), built
+        once per source version into the firmware build cache, and loaded."""
+        library = build("libmpcl_selftest.so", ("mpcl.c", "mpcl_selftest.c"),
+                        ("-shared", "-fPIC", "-DMPCL_SELFTEST_NO_MAIN"), source=SOURCE)
+        self.lib = ctypes.CDLL(str(library))
         int64_p = ctypes.POINTER(ctypes.c_int64)
         self.lib.mpcl_test_stream.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.c_size_t, int64_p,
                                               ctypes.c_size_t, ctypes.POINTER(ctypes.c_int)]

@@ -12,6 +12,7 @@ from pathlib import Path
 import yaml
 
 from ..nodes.fast_input import FastInput, ServedDirectly, serve_ready
+from ..resources import PACKAGE, ament_prefix
 from . import processes
 
 MODULES = {
@@ -65,15 +66,9 @@ def launcher(executable: str) -> list[str]:
 
 def installed_executable(executable: str) -> Path | None:
     """<prefix>/lib/profile_pose_ros/<exe> of the package the ament index (AMENT_PREFIX_PATH) finds."""
-    try:
-        from ament_index_python.packages import PackageNotFoundError, get_package_prefix
-    except ImportError:
-        return None
-    try:
-        path = Path(get_package_prefix("profile_pose_ros")) / "lib" / "profile_pose_ros" / executable
-    except (PackageNotFoundError, ValueError, OSError):  # OSError: no AMENT_PREFIX_PATH (a venv install)
-        return None
-    return path if os.access(path, os.X_OK) else None
+    prefix = ament_prefix()
+    path = None if prefix is None else prefix / "lib" / PACKAGE / executable
+    return path if path is not None and os.access(path, os.X_OK) else None
 
 
 ESTIMATING = ("pose_estimator", "cell_container")  # executables that load the compiled estimator

@@ -34,7 +34,6 @@ static struct {
     int32_t pose[6];
     int motion_error;
     int32_t increment[6];
-    uint32_t motion_calls;
     char alarm[256];
     int virtual_clock;          /* the fuzzer's: mpGetRtc reads virtual_ms */
     uint32_t virtual_ms;
@@ -107,7 +106,6 @@ void mph_reset(void)
     memset(host.pose, 0, sizeof host.pose);
     memset(host.increment, 0, sizeof host.increment);
     host.motion_error = 0;
-    host.motion_calls = 0;
     host.alarm[0] = '\0';
     host.state_drop = 0.0;
     host.delay_us = host.fail_after_states = host.states_sent = 0;
@@ -229,12 +227,11 @@ int mph_tick(uint32_t timeout_us)
     return late;
 }
 
-void mph_take_increment(int32_t out[6], uint32_t *calls)
+void mph_take_increment(int32_t out[6])
 {
     pthread_mutex_lock(&host.mutex);
     memcpy(out, host.increment, sizeof host.increment);
     memset(host.increment, 0, sizeof host.increment);
-    if (calls) *calls = host.motion_calls;
     pthread_mutex_unlock(&host.mutex);
 }
 
@@ -607,7 +604,6 @@ int mpExRcsIncrementMove(MP_EXPOS_DATA *src_p)
     error = host.motion_error;
     if (!error) {
         for (i = 0; i < 6; ++i) host.increment[i] += (int32_t)src_p->grp_pos_info[0].pos[i];
-        host.motion_calls++;
     }
     pthread_mutex_unlock(&host.mutex);
     return error;

@@ -7,7 +7,8 @@
  *
  *   - no cycle moves more than its share of the controller's per-period clamp and speed bound, no period
  *     more than the clamp, and the total never leaves the controller's offset bound;
- *   - nothing moves in a cycle that began disarmed, or in a period that began with the controller not ready;
+ *   - nothing moves in a cycle that began disarmed or with the connection closing (a failed send: the
+ *     link is lost), or in a period that began with the controller not ready;
  *   - an armed session's bounds are never wider than the controller's (no widened limit);
  *   - disarmed, the offset the application reports is what mpExRcsIncrementMove was really given;
  *   - every byte the application sends decodes as a valid frame.
@@ -266,7 +267,7 @@ static void cycle(run *r)
 {
     mpcl_app_status before, after;
     int32_t inc[6];
-    uint32_t calls, phase;
+    uint32_t phase;
     int i, moving = 0;
     mpcl_app_read_status(&before);
     phase = (before.cycles + 1u) % r->c->cycles;
@@ -275,7 +276,7 @@ static void cycle(run *r)
         r->period_ready = r->ready;
     }
     mpcl_app_cycle();
-    mph_take_increment(inc, &calls);
+    mph_take_increment(inc);
     mpcl_app_read_status(&after);
     totals.cycles++;
     for (i = 0; i < 6; ++i) {
@@ -291,6 +292,7 @@ static void cycle(run *r)
     if (moving) {
         totals.moving_cycles++;
         if (!before.armed) violation("motion in a cycle that began disarmed", 1, 0);
+        if (before.closing) violation("motion in a cycle that began with the connection closing", 1, 0);
         if (!r->period_ready) violation("motion in a period that began not ready", 1, 0);
     }
     if (!after.armed) {  /* nothing is left to hand out: the offset it reports is what really moved */
@@ -378,6 +380,7 @@ static void one_stream(void)
             mph_set_io(MPCL_IO_SERVO_ON, r.ready);
         }
         if (chance(3)) mph_set_motion_error(chance(50) ? 0 : -1);
+        if (chance(2)) mph_set_net_faults(0.0, 0u, 1u + below(4u), rnd());  /* the link breaks at a later send */
         for (k = (int)below(6u); k > 0; --k) {
             mph_advance_ms(chance(5) ? below(3000u) : below(c.cycles * 4u + 1u));
             cycle(&r);

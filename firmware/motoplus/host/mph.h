@@ -27,7 +27,7 @@ const char *mph_bound_address(void);           /* and the address */
  * or 1 when the cycle's work did not finish within timeout_us (an overrun: counted, not waited for). */
 int mph_tick(uint32_t timeout_us);
 /* The increments mpExRcsIncrementMove accepted since the last call, summed. */
-void mph_take_increment(int32_t out[6], uint32_t *calls);
+void mph_take_increment(int32_t out[6]);
 uint32_t mph_overruns(void);
 const char *mph_last_alarm(void);
 /* The fuzzer's clock: from now on mpGetRtc reads a time that moves only by mph_advance_ms (no tasks run). */
