@@ -168,7 +168,8 @@ def test_the_bringup_from_the_install_owns_its_nodes(workspace, tmp_path, how) -
                                  text=True, env=env, cwd="/", timeout=300)
             assert run.returncode == 0, run.stderr
             report = json.loads(run.stdout.splitlines()[-1])
-            assert report["different"] == 0 and report["identical"] > 50, report
+            # every pose recorded with its profile is reproduced bit for bit (a short run: ~80 profiles)
+            assert report["compared"] > 0 and report["identical"] == report["compared"], report
     finally:
         if bringup.poll() is None:
             bringup.kill()
