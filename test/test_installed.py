@@ -124,12 +124,52 @@ def domain_processes(domain_id: int) -> list[int]:
     return found
 
 
+def replayed_live_with_clock(ros, prefix: Path, env: dict, bag: Path) -> None:
+    """As `ros2 bag play --clock` into a fresh estimator with use_sim_time: the installed bag_player plays
+    the recorded profiles and the bag's time on /clock, and every pose the installed estimator publishes
+    is, byte for byte, the one recorded for that profile. cell.yaml's max_profile_age (50 ms) skips every
+    profile older than that by the estimator's clock: only the bag's time on /clock makes them fresh."""
+    from rosbags.highlevel import AnyReader
+    from rosgraph_msgs.msg import Clock
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from profile_pose_ros.nodes.messages import cdr_stamp_ns
+
+    with AnyReader([bag]) as reader:
+        recorded = {cdr_stamp_ns(data): data for connection, _, data in reader.messages(
+            [c for c in reader.connections if c.topic == "/pose_with_covariance"])}
+        start, end = reader.start_time, reader.end_time
+    live, clock = {}, []
+    listener = ros.node("replay_listener")
+    listener.create_subscription(PoseWithCovarianceStamped, "/pose_with_covariance",
+                                 lambda data: live.setdefault(cdr_stamp_ns(data), data), 100, raw=True)
+    listener.create_subscription(Clock, "/clock", clock.append, 10)
+    lib = prefix / "lib" / "profile_pose_ros"
+    run_env = dict(env, ROS_DOMAIN_ID=str(ros.domain_id))
+    cell_yaml = prefix / "share" / "profile_pose_ros" / "config" / "cell.yaml"  # what the bringup ran with
+    estimator = subprocess.Popen([str(lib / "pose_estimator"), "--ros-args", "--params-file", str(cell_yaml),
+                                  "-p", "use_sim_time:=true"],
+                                 env=run_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    player = subprocess.Popen([str(lib / "bag_player"), "--ros-args", "-p", f"bag:={bag}", "-p", "clock:=100.0",
+                               "-p", "topics:=['/profile']", "-p", "wait_for_subscribers:=true",
+                               "-p", "exit_when_done:=false"],
+                              env=run_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        assert ros.spin_until(lambda: len(live) >= len(recorded) and clock, timeout=120.0), (len(live), len(recorded))
+    finally:
+        for process in (player, estimator):
+            process.send_signal(signal.SIGINT)
+            process.wait(timeout=30)
+    assert all(start <= c.clock.sec * 10**9 + c.clock.nanosec <= end for c in clock)  # the bag's time
+    assert {stamp: live[stamp] for stamp in recorded} == recorded
+
+
 def parent(pid: int) -> int:
     return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
 
 
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL"])
-def test_the_bringup_from_the_install_owns_its_nodes(workspace, tmp_path, how) -> None:
+def test_the_bringup_from_the_install_owns_its_nodes(ros, workspace, tmp_path, how) -> None:
     from profile_pose_ros.tools.processes import fresh_domain_id
 
     prefix, env = workspace
@@ -170,6 +210,7 @@ def test_the_bringup_from_the_install_owns_its_nodes(workspace, tmp_path, how) -
             report = json.loads(run.stdout.splitlines()[-1])
             # every pose recorded with its profile is reproduced bit for bit (a short run: ~80 profiles)
             assert report["compared"] > 0 and report["identical"] == report["compared"], report
+            replayed_live_with_clock(ros, prefix, env, bag)
     finally:
         if bringup.poll() is None:
             bringup.kill()

@@ -22,6 +22,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
+from tf2_msgs.msg import TFMessage
 
 from ..core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base, pd_velocity,
                                 pose_vector_in_base, zvd_impulses)
@@ -37,6 +38,7 @@ from .messages import rotation_translation
 from .parameters import Param, declare_all, updated
 from .realtime import REALTIME_PARAMETERS
 from .run import run_node
+from .scene_messages import TF_STATIC_QOS, static_transform
 
 NODE_NAME = "pd_compensator"
 
@@ -48,7 +50,7 @@ PARAMETERS = [
     Param("max_speed", [0.05, 0.05, 0.05, 0.2, 0.2, 0.2], "Correction speed limit per axis (m/s, rad/s)."),
     Param("gauge_in_base", [0.0] * 6, "Pose of the gauge frame G in the robot base frame: x y z (m), rotation "
           "vector (rad). Corrections act at the profiler origin: set the controller's tool to the profiler "
-          "frame.", read_only=True),
+          "frame. Also published on /tf_static (base_frame -> gauge_frame).", read_only=True),
     Param("acceleration_psd", [20.0, 0.5, 20.0, 2.0, 2.0, 2.0], "Kalman filter process noise per axis "
           "((m/s^2)^2/Hz): larger follows faster motion, smaller averages more noise.", read_only=True),
     Param("shaper_frequency", 10.0, "The arm's resonance (Hz, natural frequency) that a ZVD input shaper keeps "
@@ -93,7 +95,8 @@ PARAMETERS = [
           "from the current reference (or, for the first one, from the measured pose) on any axis is refused (m, "
           "rad; base-frame axes)."),
     Param("gauge_frame", "gauge", "frame_id that poses and references must carry (the gauge frame G)."),
-    Param("base_frame", "base", "frame_id of the corrections."),
+    Param("base_frame", "base", "frame_id of the corrections, and the parent of the gauge's place (gauge_in_base) "
+          "on /tf_static."),
     Param("watchdog_rate", 100.0, "While the pose is stale (or no reference), how often a zero correction is sent "
           "(Hz). Staleness itself is noticed when the newest pose turns max_pose_age old.", 1.0, 1000.0,
           read_only=True),
@@ -155,6 +158,8 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.correction_out = LoopOutput(self.create_publisher(TwistStamped, "correction", 10), local,
                                          self.get_logger())
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.tf_static_pub = self.create_publisher(TFMessage, "/tf_static", TF_STATIC_QOS)
+        self._publish_gauge_place()
         # Poses are taken straight from their subscription (fast_input.py): through the executor each one
         # waited behind its per-wake-up bookkeeping and the 100 Hz watchdog, about a millisecond per hop here.
         # ... and serialized: read with struct, corrections written the same way (core/pose_cdr.py)
@@ -179,7 +184,14 @@ class PdCompensatorNode(RefusalCounter, Node):
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         self.values, self.gains = values, gains
+        if {p.name for p in parameters} & {"base_frame", "gauge_frame"}:
+            self._publish_gauge_place()
         return SetParametersResult(successful=True)
+
+    def _publish_gauge_place(self) -> None:
+        """The gauge's place in the base frame (gauge_in_base) on /tf_static, for viewers and tf2 users."""
+        self.tf_static_pub.publish(static_transform(self.values["base_frame"], self.values["gauge_frame"],
+                                                    self.get_clock().now().nanoseconds, self.values["gauge_in_base"]))
 
     # ---------------------------------------------------------------- inputs
     def _vector(self, pose) -> np.ndarray:

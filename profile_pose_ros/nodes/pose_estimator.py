@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import threading
 import time
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import SetParametersResult
@@ -19,6 +20,8 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
+from tf2_msgs.msg import TFMessage
+from visualization_msgs.msg import MarkerArray
 
 from ..core.estimator import WEIGHTINGS, EstimatorOptions, estimate_pose
 from ..core import fast_wrapper
@@ -26,9 +29,10 @@ from ..core.fast_wrapper import warm_up
 from ..core.gauge import Gauge, GaugeError
 from ..core.latency_window import LatencyWindow
 from ..core.pose_cdr import SerializedPosePair
-from ..core.profile_cdr import decode_profile_cdr
+from ..core.profile_cdr import ProfileMessage, decode_profile_cdr
 from ..core.profile_cloud import ProfileFormatError
 from ..core.rotation import HALF_TURN_X
+from ..core.scene import gauge_triangles, profile_in_gauge
 from ..core.sequence_gaps import SequenceGaps
 from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
@@ -38,6 +42,7 @@ from .messages import PoseMessagePair, cdr_stamp_ns
 from .parameters import Param, declare_all, updated
 from .realtime import REALTIME_PARAMETERS
 from .run import run_node
+from .scene_messages import MARKER_QOS, TF_QOS, SceneMarkers, transform_stamped
 
 NODE_NAME = "pose_estimator"
 
@@ -49,6 +54,12 @@ PARAMETERS = [
     Param("orientation_hint", list(HALF_TURN_X), "Quaternion (x y z w) near the mounting's orientation: each pose's "
           "quaternion is signed to lie on its hemisphere, so consecutive poses never flip sign (the default, a half "
           "turn about x, is the profiler looking down on the gauge)."),
+    Param("visualization_rate", 10.0, "Rate (Hz) at which the latest pose also goes to /tf (gauge_frame -> "
+          "tf_child_frame, stamped with its profile's time) and the gauge and that profile, laid on it in the gauge "
+          "frame, to `markers` (MarkerArray) for RViz and Foxglove; 0 publishes neither.", 0.0, 1000.0),
+    Param("tf_child_frame", "", "Child frame of the /tf transform; empty: the profile's frame_id. Set another name "
+          "(e.g. profiler_measured) when a robot model already puts the profiler frame on the flange, so that "
+          "the frame keeps one parent."),
     Param("refine", True, "Refine the closed form by maximum likelihood (paper eq. 15)."),
     Param("refine_weighting", "corner_covariance",
           f"Refinement weights: one of {', '.join(WEIGHTINGS)} (uniform = the paper's plain sum of squares)."),
@@ -112,6 +123,9 @@ class ProfileResult:
     pose_with_covariance: PoseWithCovarianceStamped | bytes | None = None
     reprojection_error: float | None = None
     stamp_ns: int | None = None  # the profile's, when it had a pose
+    profile: ProfileMessage | None = None  # the decoded profile and the pose's R, t (F in G), when it had one
+    rotation: np.ndarray | None = None
+    translation: np.ndarray | None = None
 
 
 def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOptions, profiler_frame: str,
@@ -133,7 +147,8 @@ def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOption
     into = into or PoseMessagePair()
     into.fill(estimate.R, estimate.t, estimate.covariance, profile.stamp_sec, profile.stamp_nanosec, gauge_frame,
               hint)
-    return ProfileResult("", into.pose, into.with_covariance, estimate.reprojection_error, profile.stamp_ns)
+    return ProfileResult("", into.pose, into.with_covariance, estimate.reprojection_error, profile.stamp_ns,
+                         profile, estimate.R, estimate.t)
 
 
 class PoseEstimatorNode(Node):
@@ -172,6 +187,10 @@ class PoseEstimatorNode(Node):
         else:
             self._subscribe_profiles()
         self.outgoing = SerializedPosePair()  # published as bytes: core/pose_cdr.py
+        self.tf_pub = self.create_publisher(TFMessage, "/tf", TF_QOS, event_callbacks=quiet)
+        self.markers_pub = self.create_publisher(MarkerArray, "markers", MARKER_QOS, event_callbacks=quiet)
+        self.scene = SceneMarkers(gauge_triangles(self.gauge), self.values["gauge_frame"])
+        self.next_scene = 0.0  # monotonic time of the next /tf and markers update
         self.last_error = ""
         self.last_reprojection_error = float("nan")
         self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}; "
@@ -264,7 +283,23 @@ class PoseEstimatorNode(Node):
         self.latency.add(time.time() - result.stamp_ns * 1e-9)
         self.published += 1
         self.covariance_out.hand_over(result.pose_with_covariance)  # composed: the correction follows here
+        self._publish_scene(result)
         return ""
+
+    def _publish_scene(self, result: ProfileResult) -> None:
+        """/tf and the markers from this pose, at most at visualization_rate (the loop's rate is not theirs)."""
+        rate, now = self.values["visualization_rate"], time.monotonic()
+        if rate <= 0.0 or now < self.next_scene:
+            return
+        self.next_scene = now + 1.0 / rate
+        gauge_frame = self.values["gauge_frame"]
+        child = self.values["tf_child_frame"] or result.profile.frame_id
+        self.tf_pub.publish(TFMessage(transforms=[transform_stamped(
+            gauge_frame, child, result.stamp_ns, result.rotation, result.translation,
+            self.values["orientation_hint"])]))
+        self.scene.set_frame(gauge_frame)
+        self.markers_pub.publish(self.scene.update(
+            profile_in_gauge(result.profile.points, result.rotation, result.translation), result.stamp_ns))
 
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self) -> None:
