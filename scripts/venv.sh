@@ -22,30 +22,13 @@ stamp_of() {
     sha256sum | cut -d' ' -f1
 }
 
-# tf2_msgs has no wheel: build its messages into the venv (interfaces/README.md) unless it has them.
-build_tf2_msgs() {
-  "$VENV/bin/python" -c 'import tf2_msgs.msg' 2>/dev/null && return 0
-  command -v cmake >/dev/null || { echo "error: cmake is needed once, to build tf2_msgs into $VENV" >&2; return 1; }
-  echo "[setup] building the tf2_msgs interface into $VENV (no wheel on PyPI; about 15 s)" >&2
-  local build
-  build="$(mktemp -d)"
-  if ! (cd "$build" && PATH="$VENV/bin:$PATH" &&
-        cmake "$ROOT/interfaces/tf2_msgs" -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
-          -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF && make -j2 install) >"$build/log" 2>&1; then
-    tail -30 "$build/log" >&2
-    echo "error: building tf2_msgs failed (full log: $build/log)" >&2
-    return 1
-  fi
-  rm -rf "$build"
-}
-
 if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$VENV/.profile_pose_stamp" 2>/dev/null)" != "$(stamp_of)" ]; then
   PY="$(find_python)"
   echo "[setup] preparing $VENV (pinned dependencies, about a minute the first time)" >&2
   [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -r "$ROOT/requirements.txt"
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e "$ROOT"
-  build_tf2_msgs
+  "$ROOT/scripts/build_tf2_msgs.sh" "$VENV"
   stamp_of > "$VENV/.profile_pose_stamp"
 fi
 export PATH="$VENV/bin:$PATH"

@@ -31,6 +31,7 @@ NODES = {"pose_estimator": ["pose_estimator"], "profiler_driver": ["profiler_dri
 # the guide's commands, in the test's venv and workspace
 GUIDE = """set -e
 source "{venv}/bin/activate"
+"{ws}/src/profile_pose_ros/scripts/build_tf2_msgs.sh"
 export AMENT_PREFIX_PATH=$VIRTUAL_ENV
 cd "{ws}" && colcon build --packages-select profile_pose_ros --event-handlers console_direct- >/dev/null
 source install/setup.bash
