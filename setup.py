@@ -21,6 +21,7 @@ EXECUTABLES = {
     "profile_pose_latency": "profile_pose_ros.tools.latency:main",
     "profile_pose_bringup": "profile_pose_ros.tools.bringup:main",
     "profile_pose_experiment": "profile_pose_ros.tools.experiment:main",
+    "profile_pose_identify": "profile_pose_ros.tools.identify:main",
     "profile_pose_fuzz": "profile_pose_ros.tools.fuzz:main",
     "profile_pose_faults": "profile_pose_ros.tools.faults:main",
     "profile_pose_soak": "profile_pose_ros.tools.soak:main",

@@ -52,3 +52,23 @@ def test_cell_parameter_files_are_generated_and_every_block_is_valid(name):
             if p.low is not None:
                 assert p.low <= value <= p.high, (node, key)
     pose_estimator.options_from({**blocks["pose_estimator"], **document["/**"]["ros__parameters"]})
+
+
+def test_the_simulated_cells_loop_timing_and_clamps_are_the_experiments() -> None:
+    """cell.yaml (the bringup) runs the modal law as profile_pose_experiment does at 12 ms: the same loop
+    delay for the bridge's answer_wait, and per-period steps that are the speed limits over a period."""
+    from profile_pose_ros.nodes.motoplus_bridge import PARAMETERS as BRIDGE
+    from profile_pose_ros.sim.sim_cell import PARAMETERS as SIM
+    from profile_pose_ros.tools.experiment import bridge_for, loop_delay, period_steps
+
+    blocks = {key.split("/")[-1]: value["ros__parameters"]
+              for key, value in yaml.safe_load((ROOT / "config" / "cell.yaml").read_text()).items()}
+    compensator, bridge, sim = blocks["pd_compensator"], blocks["motoplus_bridge"], blocks["sim_cell"]
+    period = bridge["period"]
+    assert compensator["control_period"] == period == sim["control_period"]
+    assert bridge["answer_wait"] == bridge_for(compensator)["answer_wait"]
+    assert compensator["loop_delay"] == pytest.approx(loop_delay(period, bridge["answer_wait"]), abs=1e-6)
+    assert bridge["max_step"] == pytest.approx(period_steps(compensator["max_speed"], period).tolist())
+    speed = next(p.default for p in SIM if p.name == "controller_max_speed")
+    assert sim["controller_max_step"] == pytest.approx(period_steps(speed, period).tolist())
+    assert {p.name for p in BRIDGE} >= set(bridge)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import yaml
 import pytest
 
 from profile_pose_ros.tools.experiment import (BEFORE_S, MAX_HOLE_S, METRICS, REACHED, RECORD_S, STEP_ATTEMPTS,
@@ -128,3 +129,13 @@ def test_the_latency_budget_reads_every_stage_from_the_nodes(tmp_path, composed:
         assert s["n"] > 100, (name, s)  # ~250 profiles in 3 s, each timed at every stage
         assert 0 < s["median"] <= s["p99"] <= s["max"] < 1000, (name, s)
     assert stages["profile"]["median"] < stages["pose"]["median"] < stages["correction"]["median"]
+
+
+def test_string_parameters_stay_strings_on_the_command_line() -> None:
+    """-p name:=value is parsed as YAML: an empty string, or one that reads as a number or a boolean, must
+    be quoted (an empty one made rcl refuse to start the node)."""
+    from profile_pose_ros.tools.graph import ros_params
+
+    args = ros_params({"a": "", "b": "true", "c": "1.5", "d": "it's", "e": True, "f": [1.0, 2.0], "g": "gauge"})
+    values = dict(arg.split(":=", 1) for arg in args[1::2])
+    assert [yaml.safe_load(values[k]) for k in "abcdefg"] == ["", "true", "1.5", "it's", True, [1.0, 2.0], "gauge"]

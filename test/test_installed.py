@@ -20,7 +20,7 @@ from conftest import ROOT
 
 # argparse tools answer --help; nodes start, show up in the graph, and stop on SIGINT with exit status 0
 TOOLS = ["profile_pose_bag", "profile_pose_replay", "profile_pose_latency", "profile_pose_bringup",
-         "profile_pose_experiment", "profile_pose_fuzz", "profile_pose_faults", "profile_pose_soak",
+         "profile_pose_experiment", "profile_pose_identify", "profile_pose_fuzz", "profile_pose_faults", "profile_pose_soak",
          "profile_pose_demo", "profile_pose_benchmark", "profile_pose_node_benchmark", "profile_pose_study",
          "profile_pose_gauge", "profile_pose_profiler_check"]
 NODES = {"pose_estimator": ["pose_estimator"], "profiler_driver": ["profiler_driver"],

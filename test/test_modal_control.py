@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from profile_pose_ros.core.compensator import AxisKalman, Gains, InputShaper, pd_velocity, zvd_impulses
-from profile_pose_ros.core.modal_control import MAX_GAP, ModalController, ModalDesign, axis_model
+from profile_pose_ros.core.compensator import (AxisKalman, Gains, InputShaper, pd_velocity, zero_vibration_impulses,
+                                               zvd_impulses)
+from profile_pose_ros.core.modal_control import (MAX_GAP, ModalController, ModalDesign, axis_model,
+                                                 shaped_step_increments)
 from profile_pose_ros.sim.arm import Arm, ArmModel
 
 TICK, TICKS = 0.004, 3
@@ -71,7 +73,7 @@ def run_loop(law: str, axis: int, target: float, seconds: float = 2.0, lose_ever
     collects (time, increment on the axis); `model` changes the law's design (a model that is off)."""
     rng = np.random.default_rng(seed)
     arm = Arm(ArmModel())
-    modal = ModalController(design(**(model or {})))
+    modal = ModalController(design(**(model or {})), speed_limit=0.05)
     kalman, shaper = AxisKalman(np.array([20.0, 0.5, 20.0, 2.0, 2.0, 2.0])), InputShaper(zvd_impulses(10.0, 0.05))
     gains = Gains((4.0,) * 6, (0.0,) * 6, (0.05,) * 6)
     commanded, pending = np.zeros(6), np.zeros(6)
@@ -131,7 +133,8 @@ def test_modal_law_damps_a_knock_the_pd_law_leaves_ringing(model: dict) -> None:
 
 @pytest.mark.parametrize("axis", [0, 1, 2])
 def test_modal_law_reaches_a_step_without_overshoot_through_lost_increments(axis: int) -> None:
-    t, y = run_loop("modal", axis=axis, target=1e-3, seconds=2.0, lose_every=20)
+    t, y = run_loop("modal", axis=axis, target=1e-3, seconds=2.0, lose_every=20,
+                    model=dict(reference_shaping="lag"))
     assert np.mean(y[t > 1.7]) == pytest.approx(1e-3, abs=15e-6)  # the lost motion was made up
     assert y.max() < 1e-3 * 1.03
 
@@ -141,7 +144,8 @@ def test_after_two_seconds_of_nothing_reaching_the_arm_the_law_resumes_without_a
     """The bridge disarmed mid-step: the law went on asking, nothing moved. Its offset state took in what
     never arrived, so re-armed it goes on from where the arm is: no wound-up jump, no overshoot."""
     sent: list = []
-    t, y = run_loop("modal", axis=axis, target=1e-3, seconds=4.0, disarmed=(0.3, 2.3), sent=sent)
+    t, y = run_loop("modal", axis=axis, target=1e-3, seconds=4.0, disarmed=(0.3, 2.3), sent=sent,
+                    model=dict(reference_shaping="lag"))
     resumed = [abs(inc) for when, inc in sent if when >= 2.3]
     assert y[t >= 2.3][0] < 0.8e-3  # the step was cut short
     assert max(resumed) < 40e-6  # per 12 ms period: the law's normal pace, nothing stored up
@@ -149,7 +153,7 @@ def test_after_two_seconds_of_nothing_reaching_the_arm_the_law_resumes_without_a
 
 
 def test_a_new_reference_is_glided_to_not_jumped() -> None:
-    modal = ModalController(design())
+    modal = ModalController(design(reference_shaping="lag"))
     z, variance = np.zeros(6), np.full(6, 1e-12)
     modal.update(0.0, z, variance, None)
     velocity = modal.update(PERIOD, z, variance, np.array([2e-3, 0, 0, 0, 0, 0]))
@@ -199,9 +203,71 @@ def test_a_knock_is_damped_as_well_with_four_poses_a_period() -> None:
     assert four < 1.3 * one and four < 0.2 * mean_ringing("pd", 1)
 
 
+SIM_DAMPING = (0.68, 0.018, 0.46, 0.7, 0.7, 0.7)  # what profile_pose_identify finds on sim_cell's arm
+
+
+def step_metrics(t: np.ndarray, y: np.ndarray, size: float) -> dict:
+    import control
+
+    return control.step_info(y, T=t, yfinal=size)
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+@pytest.mark.parametrize("size", [1e-3, 2e-3])
+def test_a_planned_step_settles_in_a_fraction_of_the_lagged_one(axis: int, size: float) -> None:
+    """ZVDD-shaped feedforward with the feedback on the difference from the model's motion: on sim_cell's
+    arm (nonlinear damping, delay) a step rises in ~0.1 s and settles in ~0.2 s, where the lagged reference
+    took ~0.56 s and ~1.1 s, with no more overshoot than the 2 % the issue allows."""
+    planned = step_metrics(*run_loop("modal", axis=axis, target=size, seconds=1.5, model=dict(damping=SIM_DAMPING)),
+                           size)
+    lagged = step_metrics(*run_loop("modal", axis=axis, target=size, seconds=1.5,
+                                    model=dict(damping=SIM_DAMPING, reference_shaping="lag")), size)
+    assert planned["SettlingTime"] <= 0.3 and planned["RiseTime"] <= 0.15 and planned["Overshoot"] <= 2.0
+    assert lagged["SettlingTime"] > 3 * planned["SettlingTime"]
+
+
+@pytest.mark.parametrize("scale", [0.8, 1.2])
+def test_a_planned_step_with_the_modes_frequency_20_percent_off_stays_within_5_percent(scale: float) -> None:
+    frequency = tuple(10.0 * scale for _ in range(6))
+    for axis in (0, 1, 2):
+        t, y = run_loop("modal", axis=axis, target=1e-3, seconds=1.5,
+                        model=dict(damping=SIM_DAMPING, frequency_hz=frequency))
+        assert step_metrics(t, y, 1e-3)["Overshoot"] <= 5.0
+        assert np.mean(y[t > 1.3]) == pytest.approx(1e-3, abs=10e-6)  # stable, and there
+
+
+@pytest.mark.parametrize("step, speed", [(1e-3, 0.04), (-2e-3, 0.04), (1e-4, 0.04), (1e-3, np.inf)])
+def test_shaped_increments_add_up_to_the_step_within_the_speed_limit(step: float, speed: float) -> None:
+    impulses = zero_vibration_impulses(10.0, 0.1, derivatives=2)
+    increments = shaped_step_increments(step, impulses, speed, PERIOD)
+    assert increments.sum() == pytest.approx(step, rel=1e-12)
+    assert np.all(np.sign(increments[increments != 0]) == np.sign(step))  # never back, never past
+    if np.isfinite(speed):
+        assert np.abs(increments).max() <= speed * PERIOD * (1 + 1e-9)
+    assert len(increments) * PERIOD <= impulses[-1][0] + max(abs(step) / speed, PERIOD) + PERIOD
+
+
+def test_zero_vibration_shapers_leave_no_vibration_at_their_mode() -> None:
+    """The residual vibration of the mode after the impulses (sum of gain * e^(zeta w t) e^(i w_d t)): zero
+    at the design frequency for ZV, ZVD and ZVDD, and ZVDD the flattest around it."""
+    def residual(impulses, f, zeta):
+        w, wd = 2 * np.pi * f, 2 * np.pi * f * np.sqrt(1 - zeta ** 2)
+        return abs(sum(g * np.exp(zeta * w * t) * np.exp(1j * wd * t) for t, g in impulses)) / \
+            sum(g * np.exp(zeta * w * t) for t, g in impulses)
+
+    for derivatives in (0, 1, 2):
+        impulses = zero_vibration_impulses(10.0, 0.05, derivatives)
+        assert sum(g for _, g in impulses) == pytest.approx(1.0)
+        assert residual(impulses, 10.0, 0.05) < 1e-12
+    assert zero_vibration_impulses(10.0, 0.05, 1) == zvd_impulses(10.0, 0.05)
+    off = [residual(zero_vibration_impulses(10.0, 0.05, d), 8.0, 0.05) for d in (0, 1, 2)]
+    assert off[2] < off[1] < off[0] and off[2] < 0.05
+
+
 @pytest.mark.parametrize("change", [dict(frequency_hz=(10.0,) * 5), dict(damping=(1.0,) * 6),
                                     dict(effort=(0.0,) * 6), dict(loop_delay_s=0.5 * PERIOD),
-                                    dict(reference_time_constant_s=0.0), dict(offset_walk=(-1.0,) * 6)])
+                                    dict(reference_time_constant_s=0.0), dict(offset_walk=(-1.0,) * 6),
+                                    dict(reference_shaping="zv")])
 def test_a_bad_design_is_refused(change: dict) -> None:
     with pytest.raises(ValueError):
         ModalController(design(**change))

@@ -19,6 +19,7 @@ from bisect import bisect_right
 from collections import deque
 from dataclasses import dataclass
 from functools import cached_property
+from math import comb
 
 import numpy as np
 
@@ -139,13 +140,22 @@ def pd_velocity(error: np.ndarray, velocity: np.ndarray, gains: Gains) -> np.nda
 def zvd_impulses(frequency_hz: float, damping: float) -> tuple[tuple[float, float], ...]:
     """(delay s, gain) of the zero-vibration-derivative shaper for a mode at frequency_hz (natural) and
     damping; the gains sum to 1, so a shaped command reaches the same place."""
-    if not (frequency_hz > 0 and 0 <= damping < 1):
+    return zero_vibration_impulses(frequency_hz, damping, derivatives=1)
+
+
+def zero_vibration_impulses(frequency_hz: float, damping: float, derivatives: int) -> tuple[tuple[float, float], ...]:
+    """(delay s, gain) of the zero-vibration shaper with `derivatives` zero derivatives (0: ZV, 1: ZVD,
+    2: ZVDD): each one more half period long and more tolerant of a wrong frequency (ZVD leaves ~5 % of the
+    vibration at +-15 % frequency error, ZVDD at +-25 %). Gains are (1 + K)^m's binomial terms, m =
+    derivatives + 1, normalised to sum to 1."""
+    if not (frequency_hz > 0 and 0 <= damping < 1) or derivatives < 0:
         raise ValueError(f"shaper needs a frequency > 0 and a damping in [0, 1), got {frequency_hz}, {damping}")
     root = np.sqrt(1 - damping ** 2)
     k = np.exp(-damping * np.pi / root)
     half_period = 0.5 / (frequency_hz * root)
-    norm = (1 + k) ** 2
-    return (0.0, 1 / norm), (half_period, 2 * k / norm), (2 * half_period, k ** 2 / norm)
+    m = derivatives + 1
+    gains = [comb(m, i) * k ** i for i in range(m + 1)]
+    return tuple((i * half_period, float(g / sum(gains))) for i, g in enumerate(gains))
 
 
 class InputShaper:

@@ -19,8 +19,17 @@ c is the commanded offset (the sum of the increments sent), d an unknown offset 
 increments the controller lost or never got, rounding to its 1 um unit, a model that is off. Without d a
 lost increment would be a permanent error (the filter would believe the arm was sent there).
 State: [p, v, c_(k-a-1) .. c_(k-1), d] with a = floor(loop_delay / T); the input is the next increment.
-The reference passes through a first-order filter (`reference_time_constant`) so that a step is approached
-smoothly; it starts from where the arm is estimated to be, so a new reference is glided to, never jumped.
+A new reference is reached along a planned command (reference_shaping "zvdd", the default): a ramp at
+FEEDFORWARD_SPEED_SHARE of the speed limit, convolved with the ZVDD shaper of each axis's mode, sent as
+feedforward increments, so the mode is brought to the target without ringing in about 1.5 of its periods.
+ZVDD rather than the shorter ZVD: with the model's frequency 20 % off, ZVD left sim_cell's y axis (its mode
+barely damped) 7-12 % overshoot, ZVDD under 5 %.
+The model runs the same increments into a reference state (the arm as the model expects it to move), and
+the LQR feeds back only the estimated state's difference from it: what the model misses, a disturbance, the
+ringing of a mode that is off its model. (The feedback alone, towards a reference passed through a
+first-order filter, reshaping "lag", waits for that filter: about 0.56 s to rise and 1.1 s to settle with
+its 0.25 s time constant, where the arm on its own rises in 12-36 ms.) The plan starts at rest where the
+arm is being commanded, so a ringing arm is damped, and a new reference is planned from the last one's end.
 One pose per control period drives the law: the first pose at least a period after the one that started
 the previous period, less half the poses' spacing (the median of the last SPACING_WINDOW intervals). A
 cell that triggers the profiler each period has one pose a period; a profiler on its own faster clock
@@ -44,7 +53,12 @@ from statistics import median
 import numpy as np
 from scipy.linalg import expm, solve_discrete_are
 
+from .compensator import zero_vibration_impulses
+
 MAX_GAP = 4  # periods without a pose after which the filter starts again
+# The feedforward plans its ramp at this share of the speed limit: the feedback keeps the rest for corrections.
+FEEDFORWARD_SPEED_SHARE = 0.8
+REFERENCE_SHAPINGS = ("zvdd", "lag")
 SPACING_WINDOW = 15  # recent intervals between poses whose median is the poses' spacing
 ONE_POSE_A_PERIOD = 0.98  # poses this close to a period apart (median): one a period, triggered by the controller
 
@@ -65,6 +79,7 @@ class ModalDesign:
     period_s: float = 0.012
     loop_delay_s: float = 0.012 + 0.0106
     reference_time_constant_s: float = 0.25
+    reference_shaping: str = "zvdd"
 
     def check(self) -> None:
         per_axis = (self.frequency_hz, self.damping, self.effort, self.acceleration_psd, self.offset_walk)
@@ -81,6 +96,21 @@ class ModalDesign:
                              f"{self.loop_delay_s}")
         if not 0 < self.reference_time_constant_s <= 10:
             raise ValueError("modal control: reference_time_constant in (0, 10] s")
+        if self.reference_shaping not in REFERENCE_SHAPINGS:
+            raise ValueError(f"modal control: reference_shaping is one of {', '.join(REFERENCE_SHAPINGS)}, "
+                             f"not {self.reference_shaping!r}")
+
+
+def shaped_step_increments(step: float, impulses, speed: float, period_s: float) -> np.ndarray:
+    """Per-period increments (the first applied at once) that move a command by `step` along a ramp at
+    `speed`, at least one period long, convolved with the shaper's (delay, gain) impulses: the command
+    c(t) = step * sum(gain * ramp(t - delay)) sampled at the period boundaries, which the controller joins
+    by straight lines. Its speed never exceeds `speed`, since the gains are positive and sum to 1."""
+    duration = max(abs(step) / speed if speed > 0 else 0.0, period_s)
+    end = max(delay for delay, _ in impulses) + duration
+    t = np.arange(1, int(np.ceil(end / period_s - 1e-9)) + 1) * period_s
+    command = step * sum(gain * np.clip((t - delay) / duration, 0.0, 1.0) for delay, gain in impulses)
+    return np.diff(command, prepend=0.0)
 
 
 def _held_input(frequency_hz: float, damping: float, seconds: float) -> tuple[np.ndarray, np.ndarray]:
@@ -127,9 +157,11 @@ class ModalController:
     variances and the reference, and returns the velocity to publish (the bridge integrates it over the
     period into the increment)."""
 
-    def __init__(self, design: ModalDesign) -> None:
+    def __init__(self, design: ModalDesign, speed_limit=np.inf) -> None:
         design.check()
         self.design = design
+        self.speed_limit = np.broadcast_to(np.asarray(speed_limit, dtype=float), (6,)).copy()
+        self.impulses = [zero_vibration_impulses(f, z, derivatives=2) for f, z in zip(design.frequency_hz, design.damping)]
         T = design.period_s
         models = [axis_model(f, z, T, design.loop_delay_s) for f, z in zip(design.frequency_hz, design.damping)]
         n = models[0][0].shape[0]
@@ -137,6 +169,7 @@ class ModalController:
         self.gain = np.array([lqr_gain(A, B, f, r) for (A, B), f, r
                               in zip(models, design.frequency_hz, design.effort)])  # (6, n)
         # the filter's model: the n states above and the offset d, which enters wherever a command does
+        self.A_plan = np.array([A for A, _ in models])  # the reference state's model: no offset
         self.A = np.zeros((6, n + 1, n + 1))
         for i, (A, _) in enumerate(models):
             self.A[i, :n, :n] = A
@@ -157,9 +190,16 @@ class ModalController:
         self.x = np.zeros((6, self.n + 1))
         self.P = np.zeros((6, self.n + 1, self.n + 1))
         self.reference_filtered: np.ndarray | None = None
+        self._forget_plan()
         self.velocity = np.zeros(6)
         self.pending = np.zeros(6)  # the increment asked for at the last pose: the next period's input
+        self.started_period = False  # the last update started a period: self.pending is that period's
 
+    def _forget_plan(self) -> None:
+        self.plan_state: np.ndarray | None = None  # (6, n): the reference state, commands absolute
+        self.planned = np.zeros(6)  # where the plan ends: the last reference planned for
+        self.feedforward = np.zeros((6, 0))  # increments still to send, one column a period
+        self.pending_feedforward = np.zeros(6)  # the feedforward part of self.pending
     @property
     def position(self) -> np.ndarray:
         return self.x[:, 0].copy()
@@ -178,6 +218,7 @@ class ModalController:
                 spacing = median(self.intervals)
                 if gap < 1.0 - 0.5 * spacing / T:
                     self.skipped += 1  # this period has its pose: this one has no increment of its own
+                    self.started_period = False
                     return self.velocity
         if self.time is None:
             self.last_stamp = time
@@ -195,10 +236,14 @@ class ModalController:
             # period are chosen by where the grid is.)
             self.time = time if spacing >= ONE_POSE_A_PERIOD * T else self.time + periods * T
             self._measure(z, variance)
+        self.started_period = reference is not None
         if reference is None:
             self.velocity, self.pending = np.zeros(6), np.zeros(6)
+            self._forget_plan()
             return self.velocity
-        return self._control(reference)
+        if self.design.reference_shaping == "lag":
+            return self._control(reference)
+        return self._control_planned(reference)
 
     # ---------------------------------------------------------------- the filter
     def _start(self, time: float, z: np.ndarray, variance: np.ndarray) -> None:
@@ -216,6 +261,10 @@ class ModalController:
         self.x = np.einsum("aij,aj->ai", self.A, self.x)
         self.x[:, self.n - 1] += self.pending
         self.pending = np.zeros(6)
+        if self.plan_state is not None:
+            self.plan_state = np.einsum("aij,aj->ai", self.A_plan, self.plan_state)
+            self.plan_state[:, self.n - 1] += self.pending_feedforward
+        self.pending_feedforward = np.zeros(6)
         self.P = self.A @ self.P @ self.A.transpose(0, 2, 1) + self.W
 
     def _measure(self, z: np.ndarray, variance: np.ndarray) -> None:
@@ -241,8 +290,50 @@ class ModalController:
         self.velocity = self.pending / T
         return self.velocity
 
+    def _control_planned(self, reference: np.ndarray) -> np.ndarray:
+        n, T = self.n, self.design.period_s
+        commanded = self.x[:, n - 1] + self.x[:, n]  # where the arm is being sent: newest command + offset
+        if self.plan_state is None:  # start at rest there
+            self.plan_state = np.repeat(commanded[:, None], n, axis=1)
+            self.plan_state[:, 1] = 0.0
+            self.planned = commanded.copy()
+        self._plan_towards(reference)
+        u = self.feedforward[:, 0].copy() if self.feedforward.shape[1] else np.zeros(6)
+        self.feedforward = self.feedforward[:, 1:]
+        error = np.empty((6, n))
+        error[:, :2] = self.x[:, :2] - self.plan_state[:, :2]
+        error[:, 2:] = self.x[:, 2:n] + self.x[:, n][:, None] - self.plan_state[:, 2:]
+        self.pending_feedforward = u
+        self.pending = u - np.einsum("ai,ai->a", self.gain, error)
+        self.velocity = self.pending / T
+        return self.velocity
+
+    def _plan_towards(self, reference: np.ndarray) -> None:
+        """Add to the feedforward the shaped move from where the plan ends to `reference`."""
+        step = reference - self.planned
+        if not np.any(step):
+            return
+        speed = FEEDFORWARD_SPEED_SHARE * self.speed_limit
+        moves = [shaped_step_increments(s, imp, v, self.design.period_s) if s else np.zeros(0)
+                 for s, imp, v in zip(step, self.impulses, speed)]
+        length = max(self.feedforward.shape[1], max(len(m) for m in moves))
+        feedforward = np.zeros((6, length))
+        feedforward[:, :self.feedforward.shape[1]] = self.feedforward
+        for axis, move in enumerate(moves):
+            feedforward[axis, :len(move)] += move
+        self.feedforward, self.planned = feedforward, reference.copy()
+
     def limit(self, max_speed: np.ndarray) -> np.ndarray:
-        """The velocity within a per-axis limit; the filter is told what was really asked for."""
+        """The velocity within a per-axis limit; the filter is told what was really asked for, and what
+        the limit took off the feedforward is sent in the next period instead."""
+        self.speed_limit = np.broadcast_to(np.asarray(max_speed, dtype=float), (6,)).copy()
         self.velocity = np.clip(self.velocity, -max_speed, max_speed)
-        self.pending = self.velocity * self.design.period_s
+        T = self.design.period_s
+        self.pending = self.velocity * T
+        sent = np.clip(self.pending_feedforward, -self.speed_limit * T, self.speed_limit * T)
+        if np.any(sent != self.pending_feedforward):
+            if not self.feedforward.shape[1]:
+                self.feedforward = np.zeros((6, 1))
+            self.feedforward[:, 0] += self.pending_feedforward - sent
+            self.pending_feedforward = sent
         return self.velocity

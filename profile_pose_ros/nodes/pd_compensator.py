@@ -77,10 +77,19 @@ PARAMETERS = [
     Param("control_period", 0.012, "modal: the controller's period (s): 0.012 at 83.3 Hz, 0.004 at 250 Hz.",
           0.001, 0.1, read_only=True),
     Param("loop_delay", 0.0226, "modal: from a pose's stamp to the arm moving on the increment it caused (s): "
-          "one control period (the answer is applied at the next) plus the arm's command-to-motion delay.",
+          "the periods until it is applied (one when the bridge waits for it, answer_wait > 0; two when it "
+          "answers at once), plus (period - one interpolation tick) / 2 when the controller spreads each "
+          "increment over its ticks, plus the arm's command-to-motion delay.",
           0.001, 0.5, read_only=True),
-    Param("reference_time_constant", 0.25, "modal: a new reference is approached through a first-order filter "
-          "of this time constant (s), starting from where the arm is.", 0.01, 10.0, read_only=True),
+    Param("reference_shaping", "zvdd", "modal: how a new reference is reached. zvdd: along a planned command, a "
+          "ramp at 0.8 x max_speed through a ZVDD shaper matched to each axis's mode (modal_frequency, "
+          "modal_damping), sent as feedforward, with the feedback acting on the difference from the model's "
+          "expected motion (about 0.1-0.2 s to settle; tolerates the model's frequency 20 % off). lag: the "
+          "feedback alone towards the reference through a first-order filter (reference_time_constant; slow).",
+          read_only=True),
+    Param("reference_time_constant", 0.25, "modal, reference_shaping lag: a new reference is approached through "
+          "a first-order filter of this time constant (s), starting from where the arm is.", 0.01, 10.0,
+          read_only=True),
     Param("use_covariance", True, "Weight each pose by its published covariance (else by measurement_std)."),
     Param("measurement_std", 5e-5, "Pose noise assumed when use_covariance is false (m; rad the same number).",
           1e-7, 1e-2),
@@ -121,7 +130,8 @@ def modal_controller_from(values: dict) -> ModalController | None:
     return ModalController(ModalDesign(
         tuple(values["modal_frequency"]), tuple(values["modal_damping"]), tuple(values["modal_effort"]),
         tuple(values["modal_acceleration_psd"]), tuple(values["modal_offset_walk"]), values["control_period"],
-        values["loop_delay"], values["reference_time_constant"]))
+        values["loop_delay"], values["reference_time_constant"], values["reference_shaping"]),
+        speed_limit=values["max_speed"])
 
 
 def gains_from(values: dict) -> Gains:
@@ -293,6 +303,8 @@ class PdCompensatorNode(RefusalCounter, Node):
                 return  # no target yet: the watchdog keeps the output at zero
             self.last_error = self.reference - self.modal.position
             velocity = self.modal.limit(self.gains.arrays[2])
+            if not self.modal.started_period:
+                return  # this period's increment went out with its first pose: one correction a period
         else:
             self.filter.update(stamp, z, variance)
             if self.reference is None:
@@ -325,6 +337,7 @@ class PdCompensatorNode(RefusalCounter, Node):
         for state in (self.filter, self.modal, self.shaper):
             if state is not None:
                 state.reset()
+
         # Stamped with the newest pose's trigger time: a zero that says how old its information is. Once
         # the poses are stale it is stale too, so the bridge sees the stream end and disarms until ~/start
         # (a zero stamped now would keep a session alive that a restarted estimator then moves again).

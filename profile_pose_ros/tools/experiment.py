@@ -16,8 +16,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from ..nodes.messages import pose_stamped, rotation_translation, stamp_ns
+from ..nodes.pd_compensator import PARAMETERS as COMPENSATOR_PARAMETERS
+from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
+from ..sim.sim_cell import PARAMETERS as SIM_PARAMETERS
 from ..bags import bag_info
 from .config_files import add_control_law_option
 from .graph import Graph, free_port
@@ -29,9 +33,13 @@ PAPER_IMPROVEMENT = {  # Table IV: (Mp, zeta, Mf) improvement in % at 1 mm and 2
     "y": {1: (68.87, 71.11, 63.05), 2: (96.30, 65.43, 87.20)},
     "z": {1: (78.83, 29.33, 93.64), 2: (86.72, 23.17, 96.36)},
 }
+_COMPENSATOR_DEFAULTS = {p.name: p.default for p in COMPENSATOR_PARAMETERS}
+_SIM_DEFAULTS = {p.name: p.default for p in SIM_PARAMETERS}
+_BRIDGE_ANSWER_WAIT = next(p.default for p in BRIDGE_PARAMETERS if p.name == "answer_wait")
 RECORD_S, SETTLE_S, BEFORE_S = 1.5, 1.5, 0.2
 METRICS = ("Mp", "zeta", "Mf_um", "rise_time_s", "settling_time_s", "end_fraction")  # what step_metrics returns
 SIM_ARM_DELAY_S = 0.01061  # sim_cell's arm_delay default: 4 ms clock + the paper's 6.61 ms transfer
+INTERPOLATION_CLOCK_S = 0.004  # the controller spreads each period's increment over its 4 ms clock's ticks
 REACHED = 0.95  # a step counts as reached when the record's last 0.2 s average this share of it or more
 END_S = 0.2
 MAX_HOLE_S = 0.05  # a longer gap between a record's samples can hide a peak of the 10 Hz ring (half a cycle)
@@ -105,11 +113,34 @@ def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.nd
     return np.fft.rfftfreq(len(residual), dt), 2.0 * np.abs(np.fft.rfft(residual)) / max(len(residual), 1)
 
 
+def loop_delay(period_s: float, answer_wait: float) -> float:
+    """The modal law's loop_delay on sim_cell: from a pose's stamp to the arm moving on its increment. The
+    increment answers this period's STATE (answer_wait > 0: the bridge waits for it) or the next one's
+    (answer_wait 0), is applied from the period after that, spread over its ticks (on average half a period
+    less one tick later), then the arm's own delay."""
+    answered = period_s if answer_wait > 0 else 2 * period_s
+    return answered + (period_s - INTERPOLATION_CLOCK_S) / 2 + SIM_ARM_DELAY_S
+
+
+def bridge_for(compensator: dict | None) -> dict:
+    """The modal law's increments are answered at once, each a period after its pose (answer_wait 0): waiting
+    for the newest instead, ~10 % of them missed the wait by a fraction of a millisecond, went out a period
+    late and merged with the next (their mean: half of each lost), and a planned step that lost its increments
+    overshot or crawled. A fixed period more of delay is one the model knows."""
+    modal = (compensator or {}).get("control_law", _COMPENSATOR_DEFAULTS["control_law"]) == "modal"
+    return {"answer_wait": 0.0} if modal else {}
+
+
+def period_steps(max_speed, period_s: float) -> np.ndarray:
+    """Per-period step limits (m, rad) that are the speed limits (m/s, rad/s) over one period."""
+    return np.asarray(max_speed, dtype=float) * period_s
+
+
 class Experiment:
     def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0,
                  compensator: dict | None = None, refine_model: str = "dense", profile_rate_hz: float | None = None,
                  bag: Path | None = None, gauge_file: str = "", estimator: dict | None = None,
-                 realtime_priority: int = 0, composed: bool = False) -> None:
+                 realtime_priority: int = 0, composed: bool = False, bridge: dict | None = None) -> None:
         """rate_hz: the controller's (83.333 or 250), which also triggers the profiler unless
         profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there;
         gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one);
@@ -125,8 +156,14 @@ class Experiment:
             graph.start("bag_recorder", {"output": str(bag), "compression": "zstd", "diagnostics_period": 0.5})
         profiler_port, mcu_port, robot_port = free_port(), free_port(), free_port()
         self.robot_port = robot_port
+        # The per-period step limits are the speed limits over one period (the bridge's from the compensator's,
+        # the controller's from its own): the defaults (0.2 mm) are that at 4 ms, and at 12 ms would hold a
+        # step to a third of the speed limit.
+        bridge_params = {**bridge_for(compensator), **(bridge or {})}
+        self.max_step = period_steps((compensator or {}).get("max_speed", _COMPENSATOR_DEFAULTS["max_speed"]), period)
         sim = {"profiler_port": profiler_port, "mcu_port": mcu_port, "robot_port": robot_port,
-               "control_period": period, "noise_std": noise_std, "seed": seed, "diagnostics_period": 0.5}
+               "control_period": period, "noise_std": noise_std, "seed": seed, "diagnostics_period": 0.5,
+               "controller_max_step": period_steps(_SIM_DEFAULTS["controller_max_speed"], period).tolist()}
         gauge = {"gauge_file": gauge_file} if gauge_file else {}
         loop = {"realtime_priority": realtime_priority} if realtime_priority else {}
         driver = {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}", "diagnostics_period": 0.5,
@@ -140,10 +177,11 @@ class Experiment:
             # every pose counts in the step metrics, late or not: no max_profile_age here (the soak sets it)
             "pose_estimator": {"diagnostics_period": 0.5, "refine_model": refine_model, **gauge, **(estimator or {}),
                                **loop},
-            # the modal law's model of the loop: an answer applied at the next period, then sim_cell's arm delay
             "pd_compensator": {"diagnostics_period": 0.5, "control_period": period,
-                               "loop_delay": period + SIM_ARM_DELAY_S, **(compensator or {}), **loop},
-            "motoplus_bridge": {"port": robot_port, "period": period, "diagnostics_period": 0.5, **loop}}
+                               "loop_delay": loop_delay(period, bridge_params.get("answer_wait", _BRIDGE_ANSWER_WAIT)),
+                               **(compensator or {}), **loop},
+            "motoplus_bridge": {"port": robot_port, "period": period, "diagnostics_period": 0.5,
+                                "max_step": self.max_step.tolist(), **bridge_params, **loop}}
         if composed:
             graph.start_composed(nodes)
         else:
@@ -379,12 +417,12 @@ def _save(fig, path) -> str:
 def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise: float, out, seed: int = 0,
         compensator: dict | None = None, modes: tuple[str, ...] = ("open", "closed"),
         refine_model: str = "dense", bag: Path | None = None, gauge_file: str = "", composed: bool = False,
-        profile_rate_hz: float | None = None) -> dict:
+        profile_rate_hz: float | None = None, bridge: dict | None = None) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_experiment")
     runs: list[dict] = []
     try:
         exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model, bag=bag, gauge_file=gauge_file,
-                         composed=composed, profile_rate_hz=profile_rate_hz)
+                         composed=composed, profile_rate_hz=profile_rate_hz, bridge=bridge)
         exp.start()
         for mode in modes:
             exp.bridge(arm=(mode == "closed"))
@@ -456,6 +494,13 @@ def main(argv=None) -> int:
     parser.add_argument("--kd", type=float, nargs=6, help="pd_compensator kd")
     parser.add_argument("--psd", type=float, nargs=6, help="pd_compensator acceleration_psd (Kalman process noise)")
     add_control_law_option(parser, ": modal damps the arm's mode, pd only keeps its own commands away from it")
+    parser.add_argument("--compensator-params", type=Path, help="a parameter file for pd_compensator, e.g. the "
+                        "modal model profile_pose_identify wrote")
+    parser.add_argument("--modal-frequency-scale", type=float, default=1.0, help="run the modal law with its "
+                        "model's frequencies times this (0.8, 1.2: a model 20 %% off, on purpose)")
+    parser.add_argument("--answer-wait", type=float, help="motoplus_bridge's answer_wait (periods)")
+    parser.add_argument("--reference-shaping", choices=["zvdd", "lag"], help="pd_compensator's reference_shaping "
+                        "(modal law)")
     parser.add_argument("--modes", nargs="+", default=["open", "closed"], choices=["open", "closed"])
     parser.add_argument("--refine-model", default="dense", choices=["corners", "dense"],
                         help="pose_estimator's refinement: dense fits every point (~1.6x less noise along the "
@@ -472,6 +517,13 @@ def main(argv=None) -> int:
     bag = None if args.no_bag else out / "bag"
     compensator = {k: list(v) for k, v in (("kp", args.kp), ("kd", args.kd), ("acceleration_psd", args.psd)) if v}
     compensator["control_law"] = args.control_law
+    if args.compensator_params:
+        compensator.update(yaml.safe_load(args.compensator_params.read_text())["pd_compensator"]["ros__parameters"])
+    if args.reference_shaping:
+        compensator["reference_shaping"] = args.reference_shaping
+    if args.modal_frequency_scale != 1.0:
+        nominal = compensator.get("modal_frequency", _COMPENSATOR_DEFAULTS["modal_frequency"])
+        compensator["modal_frequency"] = [args.modal_frequency_scale * f for f in nominal]
     profiles = f", profiles at {args.profile_rate:g} Hz" if args.profile_rate else ""
     print(f"Table IV protocol at {args.rate:g} Hz{profiles}: {len(args.axes)} axes x {len(args.sizes)} sizes x "
           f"{args.repeats} repeats, open and closed loop ({args.control_law} law); gauge {args.gauge or 'config/gauge_paper_n5.yaml'}, "
@@ -479,7 +531,8 @@ def main(argv=None) -> int:
           flush=True)
     result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=compensator,
                  modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge,
-                 composed=args.composed, profile_rate_hz=args.profile_rate)
+                 composed=args.composed, profile_rate_hz=args.profile_rate,
+                 bridge={"answer_wait": args.answer_wait} if args.answer_wait is not None else None)
     if len(args.modes) < 2:  # nothing to compare: the runs only
         write_json(out / "experiment.json", result)
         print(f"results: {out / 'experiment.json'}")

@@ -156,7 +156,7 @@ class FaultRun:
         self.exp = Experiment(graph, rate_hz, 5e-6, refine_model=refine_model,
                               compensator={"control_law": control_law})
         self.period = self.exp.period
-        self.max_step = np.array(_DEFAULTS["max_step"])
+        self.max_step = self.exp.max_step
         self.max_age = float(_DEFAULTS["max_age"])
         self.input_timeout = float(_DEFAULTS["input_timeout"])
         self.applied: list[tuple[float, np.ndarray]] = []

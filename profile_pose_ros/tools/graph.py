@@ -49,6 +49,8 @@ def ros_params(values: dict) -> list[str]:
             text = "true" if value else "false"
         elif isinstance(value, (list, tuple)):
             text = "[" + ",".join(repr(v) if isinstance(v, str) else str(v) for v in value) + "]"
+        elif isinstance(value, str):  # YAML-quoted: "" or "true" must stay strings
+            text = "'" + value.replace("'", "''") + "'"
         else:
             text = str(value)
         args += ["-p", f"{name}:={text}"]
