@@ -218,8 +218,8 @@ def test_a_planned_step_settles_in_a_fraction_of_the_lagged_one(axis: int, size:
     """ZVDD-shaped feedforward with the feedback on the difference from the model's motion: on sim_cell's
     arm (nonlinear damping, delay) a step rises in ~0.1 s and settles in ~0.2 s, where the lagged reference
     took ~0.56 s and ~1.1 s, with no more overshoot than the 2 % the issue allows."""
-    planned = step_metrics(*run_loop("modal", axis=axis, target=size, seconds=1.5, model=dict(damping=SIM_DAMPING)),
-                           size)
+    planned = step_metrics(*run_loop("modal", axis=axis, target=size, seconds=1.5,
+                                     model=dict(damping=SIM_DAMPING, reference_shaping="zvdd")), size)
     lagged = step_metrics(*run_loop("modal", axis=axis, target=size, seconds=1.5,
                                     model=dict(damping=SIM_DAMPING, reference_shaping="lag")), size)
     assert planned["SettlingTime"] <= 0.3 and planned["RiseTime"] <= 0.15 and planned["Overshoot"] <= 2.0
@@ -231,7 +231,7 @@ def test_a_planned_step_with_the_modes_frequency_20_percent_off_stays_within_5_p
     frequency = tuple(10.0 * scale for _ in range(6))
     for axis in (0, 1, 2):
         t, y = run_loop("modal", axis=axis, target=1e-3, seconds=1.5,
-                        model=dict(damping=SIM_DAMPING, frequency_hz=frequency))
+                        model=dict(damping=SIM_DAMPING, frequency_hz=frequency, reference_shaping="zvdd"))
         assert step_metrics(t, y, 1e-3)["Overshoot"] <= 5.0
         assert np.mean(y[t > 1.3]) == pytest.approx(1e-3, abs=10e-6)  # stable, and there
 

@@ -19,16 +19,18 @@ c is the commanded offset (the sum of the increments sent), d an unknown offset 
 increments the controller lost or never got, rounding to its 1 um unit, a model that is off. Without d a
 lost increment would be a permanent error (the filter would believe the arm was sent there).
 State: [p, v, c_(k-a-1) .. c_(k-1), d] with a = floor(loop_delay / T); the input is the next increment.
-A new reference is reached along a planned command (reference_shaping "zvdd", the default): a ramp at
+A new reference can be reached along a planned command (reference_shaping "zvdd"): a ramp at
 FEEDFORWARD_SPEED_SHARE of the speed limit, convolved with the ZVDD shaper of each axis's mode, sent as
 feedforward increments, so the mode is brought to the target without ringing in about 1.5 of its periods.
 ZVDD rather than the shorter ZVD: with the model's frequency 20 % off, ZVD left sim_cell's y axis (its mode
 barely damped) 7-12 % overshoot, ZVDD under 5 %.
 The model runs the same increments into a reference state (the arm as the model expects it to move), and
 the LQR feeds back only the estimated state's difference from it: what the model misses, a disturbance, the
-ringing of a mode that is off its model. (The feedback alone, towards a reference passed through a
-first-order filter, reshaping "lag", waits for that filter: about 0.56 s to rise and 1.1 s to settle with
-its 0.25 s time constant, where the arm on its own rises in 12-36 ms.) The plan starts at rest where the
+ringing of a mode that is off its model. The default, "lag", is the feedback alone towards a reference
+passed through a first-order filter: it waits for that filter (about 0.56 s to rise and 1.1 s to settle
+with its 0.25 s time constant, where the arm on its own rises in 12-36 ms), but its slow approach is what
+Table IV's post-rise spectrum (Mf) rewards, and a planned step needs every increment to arrive in its
+period (docs/robot_side.md has the figures). The plan starts at rest where the
 arm is being commanded, so a ringing arm is damped, and a new reference is planned from the last one's end.
 One pose per control period drives the law: the first pose at least a period after the one that started
 the previous period, less half the poses' spacing (the median of the last SPACING_WINDOW intervals). A
@@ -79,7 +81,7 @@ class ModalDesign:
     period_s: float = 0.012
     loop_delay_s: float = 0.012 + 0.0106
     reference_time_constant_s: float = 0.25
-    reference_shaping: str = "zvdd"
+    reference_shaping: str = "lag"
 
     def check(self) -> None:
         per_axis = (self.frequency_hz, self.damping, self.effort, self.acceleration_psd, self.offset_walk)

@@ -32,10 +32,9 @@ SIM_CELL = {
     "profiler_driver": {"serial_url": "socket://127.0.0.1:24693"},
     "pose_estimator": {"refine_model": "dense", "max_profile_age": 0.05},
     # the modal law as profile_pose_experiment runs it at 12 ms (tools/experiment.py: loop_delay, bridge_for,
-    # period_steps; a test keeps them equal): the arm's mode as profile_pose_identify measures it on sim_cell
-    "pd_compensator": {"control_law": CELL_CONTROL_LAW, "loop_delay": 0.03861,
-                       "modal_damping": [0.68, 0.018, 0.46, 0.7, 0.7, 0.7]},
-    "motoplus_bridge": {"answer_wait": 0.0, "max_step": [6e-4, 6e-4, 6e-4, 2.4e-3, 2.4e-3, 2.4e-3]},
+    # period_steps; a test keeps them equal)
+    "pd_compensator": {"control_law": CELL_CONTROL_LAW, "loop_delay": 0.02661},
+    "motoplus_bridge": {"max_step": [6e-4, 6e-4, 6e-4, 2.4e-3, 2.4e-3, 2.4e-3]},
     "sim_cell": {"controller_max_step": [6e-4, 6e-4, 6e-4, 3e-3, 3e-3, 3e-3]},
 }
 HARDWARE = {

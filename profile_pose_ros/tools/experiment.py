@@ -123,12 +123,13 @@ def loop_delay(period_s: float, answer_wait: float) -> float:
 
 
 def bridge_for(compensator: dict | None) -> dict:
-    """The modal law's increments are answered at once, each a period after its pose (answer_wait 0): waiting
+    """A planned step's increments are answered at once, each a period after its pose (answer_wait 0): waiting
     for the newest instead, ~10 % of them missed the wait by a fraction of a millisecond, went out a period
     late and merged with the next (their mean: half of each lost), and a planned step that lost its increments
     overshot or crawled. A fixed period more of delay is one the model knows."""
-    modal = (compensator or {}).get("control_law", _COMPENSATOR_DEFAULTS["control_law"]) == "modal"
-    return {"answer_wait": 0.0} if modal else {}
+    values = {**_COMPENSATOR_DEFAULTS, **(compensator or {})}
+    planned = values["control_law"] == "modal" and values["reference_shaping"] == "zvdd"
+    return {"answer_wait": 0.0} if planned else {}
 
 
 def period_steps(max_speed, period_s: float) -> np.ndarray:
@@ -333,7 +334,7 @@ def summarise(runs: list[dict], source: str = "estimate") -> dict:
         key = (r["axis"], r["size_mm"], r["mode"])
         table_.setdefault(key, []).append(r[source])
     return {key: {m: (float(np.nanmean([x[m] for x in v])), float(np.nanstd([x[m] for x in v])))
-                  for m in ("Mp", "zeta", "Mf_um", "end_fraction")} for key, v in table_.items()}
+                  for m in METRICS} for key, v in table_.items()}
 
 
 def improvement(open_value: float, closed_value: float, higher_is_better: bool) -> float:
@@ -368,6 +369,43 @@ def table_iv(runs: list[dict], axes: list[str], sizes: list[float], source: str 
     return text, checks
 
 
+# A fast, damped step (issue 31's targets), judged per closed-loop step by the arm's true motion.
+FAST_STEP = {"rise_time_s": 0.15, "settling_time_s": 0.3, "Mp": 2.0, "end_error": 0.005}
+
+
+def fast_step(metrics: dict) -> bool:
+    return (metrics["rise_time_s"] <= FAST_STEP["rise_time_s"] and metrics["settling_time_s"] <= FAST_STEP[
+        "settling_time_s"] and metrics["Mp"] <= FAST_STEP["Mp"] and abs(metrics["end_fraction"] - 1.0) <= FAST_STEP[
+        "end_error"])
+
+
+def speed_table(runs: list[dict], axes: list[str], sizes: list[float]) -> tuple[str, dict]:
+    """How fast each step gets there: 10-90 % rise, 2 % settling, and where the record ends (% of the step),
+    by the estimate and by the truth (mean over repeats); and how many closed-loop steps met FAST_STEP."""
+    est, truth = summarise(runs, "estimate"), summarise(runs, "truth")
+    modes = sorted({r["mode"] for r in runs}, key=["open", "closed"].index)
+    rows = []
+    for axis in axes:
+        for size in sizes:
+            for mode in modes:
+                e, t = est.get((axis, size, mode)), truth.get((axis, size, mode))
+                if e is None or t is None:
+                    continue
+                rows.append([f"{axis} {size:g} mm", mode,
+                             f"{e['rise_time_s'][0]:.3f} / {t['rise_time_s'][0]:.3f}",
+                             f"{e['settling_time_s'][0]:.3f} / {t['settling_time_s'][0]:.3f}",
+                             f"{100 * e['end_fraction'][0]:.2f} / {100 * t['end_fraction'][0]:.2f}",
+                             f"{e['Mp'][0]:.2f} / {t['Mp'][0]:.2f}"])
+    closed = [r["truth"] for r in runs if r["mode"] == "closed" and not r["spoiled"]]
+    met = sum(fast_step(m) for m in closed)
+    text = table(["step", "", "rise 10-90 % (s)", "settling 2 % (s)", "end of record (%)", "Mp (%)"], rows,
+                 "How fast: estimate / truth, mean over repeats (a step that never settles within the record: nan)")
+    text += (f"\nclosed-loop steps rising within {FAST_STEP['rise_time_s']:g} s, settling within "
+             f"{FAST_STEP['settling_time_s']:g} s, Mp <= {FAST_STEP['Mp']:g} % and ending within "
+             f"{100 * FAST_STEP['end_error']:g} % of the step, by the truth: {met} of {len(closed)}")
+    return text, {"fast_steps": met, "closed_steps": len(closed), "targets": FAST_STEP}
+
+
 def plot(runs: list[dict], out, axes: list[str]) -> list[str]:
     import matplotlib
 
@@ -381,11 +419,15 @@ def plot(runs: list[dict], out, axes: list[str]) -> list[str]:
         for mode, style in (("open", "C3"), ("closed", "C0")):
             r = next((r for r in runs if r["axis"] == axis and r["mode"] == mode and r["size_mm"] == size), None)
             if r:
-                panel.plot(r["estimate"]["t"], np.array(r["estimate"]["y"]) * 1e3, style,
-                           label=f"{'OL' if mode == 'open' else 'CL'}")
+                e = r["estimate"]
+                panel.plot(e["t"], np.array(e["y"]) * 1e3, style, label=f"{'OL' if mode == 'open' else 'CL'}: rise "
+                           f"{e['rise_time_s']:.2f} s, settle {e['settling_time_s']:.2f} s")
+                if np.isfinite(e["settling_time_s"]):
+                    panel.axvline(e["settling_time_s"], color=style, lw=0.8, ls=":")
         panel.set(title=f"{axis}, {size:g} mm step", xlabel="time (s)", ylabel="position (mm)")
+        panel.axhspan(0.98 * size, 1.02 * size, color="0.9", zorder=0)  # the 2 % settling band
         if panel.get_legend_handles_labels()[0]:
-            panel.legend()
+            panel.legend(fontsize=7)
     paths.append(_save(fig, out / "fig6_open_vs_closed.png"))
 
     open_runs = [r for r in runs if r["mode"] == "open" and r["size_mm"] == 1.0]
@@ -533,13 +575,18 @@ def main(argv=None) -> int:
                  modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge,
                  composed=args.composed, profile_rate_hz=args.profile_rate,
                  bridge={"answer_wait": args.answer_wait} if args.answer_wait is not None else None)
-    if len(args.modes) < 2:  # nothing to compare: the runs only
+    if len(args.modes) < 2:  # nothing to compare: the runs, and how fast they got there
+        speed_text, result["speed"] = speed_table(result["runs"], args.axes, args.sizes)
+        print(speed_text)
         write_json(out / "experiment.json", result)
         print(f"results: {out / 'experiment.json'}")
         return 0
     text, checks = table_iv(result["runs"], args.axes, args.sizes)
     _, truth_checks = table_iv(result["runs"], args.axes, args.sizes, source="truth")
     print(text)
+    speed_text, speed = speed_table(result["runs"], args.axes, args.sizes)
+    print(speed_text)
+    result["speed"] = speed
     floor = result["noise_floor_um"]
     print("loop noise floor, closed loop holding still (std, um, x y z): estimate "
           + " ".join(f"{v:.1f}" for v in floor["estimate"]) + "; arm (truth) "
