@@ -151,18 +151,24 @@ def replayed_live_with_clock(ros, prefix: Path, env: dict, bag: Path) -> None:
     estimator = subprocess.Popen([str(lib / "pose_estimator"), "--ros-args", "--params-file", str(cell_yaml),
                                   "-p", "use_sim_time:=true"],
                                  env=run_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # the player waits for a subscriber only so long (wait_timeout): start it once the estimator listens
+    assert ros.spin_until(lambda: listener.count_subscribers("/profile") > 0, timeout=120.0), "no estimator"
     player = subprocess.Popen([str(lib / "bag_player"), "--ros-args", "-p", f"bag:={bag}", "-p", "clock:=100.0",
                                "-p", "topics:=['/profile']", "-p", "wait_for_subscribers:=true",
                                "-p", "exit_when_done:=false"],
                               env=run_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        assert ros.spin_until(lambda: len(live) >= len(recorded) and clock, timeout=120.0), (len(live), len(recorded))
+        # the estimator skips what its clock (the bag's, 10 ms steps) says is stale, as the live one did: most
+        # profiles, not necessarily the same few
+        assert ros.spin_until(lambda: clock and len(live.keys() & recorded.keys()) >= 0.9 * len(recorded),
+                              timeout=120.0), (len(live), len(recorded))
     finally:
         for process in (player, estimator):
             process.send_signal(signal.SIGINT)
             process.wait(timeout=30)
     assert all(start <= c.clock.sec * 10**9 + c.clock.nanosec <= end for c in clock)  # the bag's time
-    assert {stamp: live[stamp] for stamp in recorded} == recorded
+    common = live.keys() & recorded.keys()
+    assert {stamp: live[stamp] for stamp in common} == {stamp: recorded[stamp] for stamp in common}
 
 
 def parent(pid: int) -> int:
