@@ -81,8 +81,20 @@ class CheckRun:
         g.spin_until(last, 5.0)
         wall = time.monotonic() - wall_start
         self.cpu_percent = cpu_percent(cpu_start, g.cpu_seconds(), wall)
-        g.spin_until(lambda: False, 1.2)  # the last diagnostics of every node
+        g.spin_until(self._counts_settled(), 15.0)  # every node's last diagnostics, however late on a busy PC
         return self._compare()
+
+    def _counts_settled(self, quiet_s: float = 1.2):
+        """A condition: true once no count has changed for quiet_s (over two diagnostics periods). A fixed
+        wait read a loaded runner's driver 4 profiles short: its last diagnostics had not come yet."""
+        state = {"counts": None, "since": time.monotonic()}
+
+        def settled() -> bool:
+            counts = tuple(self.value(*key.split("/"), "") for key in self.COUNTS)
+            if counts != state["counts"]:
+                state["counts"], state["since"] = counts, time.monotonic()
+            return time.monotonic() - state["since"] >= quiet_s
+        return settled
 
     def _warm_up(self, triggers: int = 40, bursts: int = 10) -> None:
         """Bursts of triggers until poses come out (DDS discovery between the nodes is complete), then every
