@@ -146,8 +146,11 @@ def test_reconnects_within_a_second_when_the_device_closes(rig_factory) -> None:
     rig.run(100.0, 400)
     c = rig.link.counters
     assert rig.cell.profiler.closes >= 5 and c.connections >= 6
-    assert c.dropped == rig.cell.profiler.frames_unsent and c.published + c.dropped + c.late_lines == 400
-    assert c.late_lines <= 4
+    # every frame accounted for: published, or dropped, late or with a stamp the clock map could not confirm
+    # (a loaded runner's MCU clock map: 24 of 350 in one clean-clone run, which the old sum left out)
+    assert c.dropped == rig.cell.profiler.frames_unsent
+    assert c.published + c.dropped + c.late_lines + c.unconfirmed == 400
+    assert c.late_lines <= 4 and c.unconfirmed <= 40
     # A reconnect to the same device keeps the pairing: no trigger pause. A pairing that failed is rightly
     # done again (seen once, a clean-clone CI run on a loaded machine: 2 pairings): the first profile after
     # arming lost to a close (the two counts disagree), or the MCU too slow to acknowledge a command.
