@@ -58,6 +58,7 @@ def test_the_simulated_cells_loop_timing_and_clamps_are_the_experiments() -> Non
     """cell.yaml (the bringup) runs the modal law as profile_pose_experiment does at 12 ms: the same loop
     delay for the bridge's answer_wait, and per-period steps that are the speed limits over a period."""
     from profile_pose_ros.nodes.motoplus_bridge import PARAMETERS as BRIDGE
+    from profile_pose_ros.nodes.parameters import defaults
     from profile_pose_ros.sim.sim_cell import PARAMETERS as SIM
     from profile_pose_ros.tools.experiment import bridge_for, loop_delay, period_steps
 
@@ -66,10 +67,10 @@ def test_the_simulated_cells_loop_timing_and_clamps_are_the_experiments() -> Non
     compensator, bridge, sim = blocks["pd_compensator"], blocks["motoplus_bridge"], blocks["sim_cell"]
     period = bridge["period"]
     assert compensator["control_period"] == period == sim["control_period"]
-    answer_wait = bridge.get("answer_wait", next(p.default for p in BRIDGE if p.name == "answer_wait"))
+    answer_wait = bridge.get("answer_wait", defaults(BRIDGE)["answer_wait"])
     assert answer_wait == bridge_for(compensator).get("answer_wait", answer_wait)
     assert compensator["loop_delay"] == pytest.approx(loop_delay(period, answer_wait), abs=1e-6)
     assert bridge["max_step"] == pytest.approx(period_steps(compensator["max_speed"], period).tolist())
-    speed = next(p.default for p in SIM if p.name == "controller_max_speed")
+    speed = defaults(SIM)["controller_max_speed"]
     assert sim["controller_max_step"] == pytest.approx(period_steps(speed, period).tolist())
-    assert {p.name for p in BRIDGE} >= set(bridge)
+    assert set(defaults(BRIDGE)) >= set(bridge)

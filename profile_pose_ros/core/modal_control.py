@@ -22,16 +22,15 @@ State: [p, v, c_(k-a-1) .. c_(k-1), d] with a = floor(loop_delay / T); the input
 A new reference can be reached along a planned command (reference_shaping "zvdd"): a ramp at
 FEEDFORWARD_SPEED_SHARE of the speed limit, convolved with the ZVDD shaper of each axis's mode, sent as
 feedforward increments, so the mode is brought to the target without ringing in about 1.5 of its periods.
-ZVDD rather than the shorter ZVD: with the model's frequency 20 % off, ZVD left sim_cell's y axis (its mode
-barely damped) 7-12 % overshoot, ZVDD under 5 %. The model runs the same increments into a reference state
+ZVDD rather than the shorter ZVD: it tolerates the model's frequency 20 % off on a barely damped axis
+(docs/robot_side.md). The model runs the same increments into a reference state
 (the arm as the model expects it to move), and the LQR feeds back only the estimated state's difference from
 it: what the model misses, a disturbance, the ringing of a mode that is off its model. The plan starts at
 rest where the arm is being commanded, so a ringing arm is damped, and a new reference is planned from the
 last one's end. The default, "lag", is the feedback alone towards a reference passed through a first-order
-filter that starts where the arm is: it waits for that filter (about 0.56 s to rise and 1.1 s to settle with
-its 0.25 s time constant, where the arm on its own rises in 12-36 ms), but its slow approach is what Table
-IV's post-rise spectrum (Mf) rewards, and a planned step needs every increment to arrive in its period
-(docs/robot_side.md has the figures).
+filter that starts where the arm is: it waits for that filter (several time constants to settle), but its
+slow approach is what Table IV's post-rise spectrum (Mf) rewards, and a planned step needs every increment
+to arrive in its period (docs/robot_side.md has the figures).
 One pose per control period drives the law: the first pose at least a period after the one that started
 the previous period, less half the poses' spacing (the median of the last SPACING_WINDOW intervals). A
 cell that triggers the profiler each period has one pose a period; a profiler on its own faster clock

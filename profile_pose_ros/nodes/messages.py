@@ -16,6 +16,10 @@ def stamp_ns(stamp: Time) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
+def set_stamp(stamp: Time, nanoseconds: int) -> None:
+    stamp.sec, stamp.nanosec = divmod(int(nanoseconds), 1_000_000_000)
+
+
 def cdr_stamp_ns(cdr: bytes) -> int:
     """header.stamp of a serialized message that starts with a std_msgs/Header (little-endian CDR), without
     decoding the rest (a 3200-point profile, say)."""

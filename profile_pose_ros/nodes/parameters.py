@@ -33,6 +33,11 @@ class Param:
         return d
 
 
+def defaults(params: list[Param]) -> dict[str, Any]:
+    """Every parameter's default by name: what a node runs with when nothing overrides it."""
+    return {p.name: p.default for p in params}
+
+
 def declare_all(node: Node, params: list[Param]) -> dict[str, Any]:
     """Declare every parameter and return their (possibly overridden) values by name. An empty list
     default declares a string array (rclpy would guess a byte array) that is unset until given."""

@@ -338,7 +338,6 @@ class PdCompensatorNode(RefusalCounter, Node):
         for state in (self.filter, self.modal, self.shaper):
             if state is not None:
                 state.reset()
-
         # Stamped with the newest pose's trigger time: a zero that says how old its information is. Once
         # the poses are stale it is stale too, so the bridge sees the stream end and disarms until ~/start
         # (a zero stamped now would keep a session alive that a restarted estimator then moves again).

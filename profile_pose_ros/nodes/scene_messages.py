@@ -10,6 +10,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ..core.rotation import HALF_TURN_X, quaternion_near, so3_exp
+from .messages import set_stamp
 
 # tf2_ros's own QoS: /tf keeps 100 transforms for slow listeners; /tf_static is latched (transient local)
 # so a listener started later still gets the fixed frames.
@@ -28,7 +29,7 @@ def transform_stamped(parent: str, child: str, stamp_ns: int, rotation: np.ndarr
                       hint=HALF_TURN_X) -> TransformStamped:
     """child's pose in parent (p_parent = R p_child + t) as a TransformStamped."""
     msg = TransformStamped()
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    set_stamp(msg.header.stamp, stamp_ns)
     msg.header.frame_id, msg.child_frame_id = parent, child
     t = msg.transform.translation
     t.x, t.y, t.z = np.asarray(translation, dtype=float).tolist()
@@ -67,6 +68,6 @@ class SceneMarkers:
 
     def update(self, profile_in_gauge: np.ndarray, stamp_ns: int) -> MarkerArray:
         for marker in self.array.markers:
-            marker.header.stamp.sec, marker.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+            set_stamp(marker.header.stamp, stamp_ns)
         self.profile.points = _points(profile_in_gauge)
         return self.array

@@ -19,6 +19,7 @@ import numpy as np
 import yaml
 
 from ..nodes.messages import pose_stamped, rotation_translation, stamp_ns
+from ..nodes.parameters import defaults
 from ..nodes.pd_compensator import PARAMETERS as COMPENSATOR_PARAMETERS
 from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
 from ..sim.sim_cell import PARAMETERS as SIM_PARAMETERS
@@ -33,9 +34,9 @@ PAPER_IMPROVEMENT = {  # Table IV: (Mp, zeta, Mf) improvement in % at 1 mm and 2
     "y": {1: (68.87, 71.11, 63.05), 2: (96.30, 65.43, 87.20)},
     "z": {1: (78.83, 29.33, 93.64), 2: (86.72, 23.17, 96.36)},
 }
-_COMPENSATOR_DEFAULTS = {p.name: p.default for p in COMPENSATOR_PARAMETERS}
-_SIM_DEFAULTS = {p.name: p.default for p in SIM_PARAMETERS}
-_BRIDGE_ANSWER_WAIT = next(p.default for p in BRIDGE_PARAMETERS if p.name == "answer_wait")
+_COMPENSATOR_DEFAULTS = defaults(COMPENSATOR_PARAMETERS)
+_SIM_DEFAULTS = defaults(SIM_PARAMETERS)
+_BRIDGE_DEFAULTS = defaults(BRIDGE_PARAMETERS)
 RECORD_S, SETTLE_S, BEFORE_S = 1.5, 1.5, 0.2
 METRICS = ("Mp", "zeta", "Mf_um", "rise_time_s", "settling_time_s", "end_fraction")  # what step_metrics returns
 SIM_ARM_DELAY_S = 0.01061  # sim_cell's arm_delay default: 4 ms clock + the paper's 6.61 ms transfer
@@ -123,10 +124,10 @@ def loop_delay(period_s: float, answer_wait: float) -> float:
 
 
 def bridge_for(compensator: dict | None) -> dict:
-    """A planned step's increments are answered at once, each a period after its pose (answer_wait 0): waiting
-    for the newest instead, ~10 % of them missed the wait by a fraction of a millisecond, went out a period
-    late and merged with the next (their mean: half of each lost), and a planned step that lost its increments
-    overshot or crawled. A fixed period more of delay is one the model knows."""
+    """A planned step's increments are answered at once, each a period after its pose (answer_wait 0): a bridge
+    that waits for the newest misses some by a fraction of a millisecond and merges them with the next (their
+    mean: half of each lost), which a planned step cannot make up; a fixed period more of delay is one the
+    model knows (docs/robot_side.md)."""
     values = {**_COMPENSATOR_DEFAULTS, **(compensator or {})}
     planned = values["control_law"] == "modal" and values["reference_shaping"] == "zvdd"
     return {"answer_wait": 0.0} if planned else {}
@@ -179,7 +180,7 @@ class Experiment:
             "pose_estimator": {"diagnostics_period": 0.5, "refine_model": refine_model, **gauge, **(estimator or {}),
                                **loop},
             "pd_compensator": {"diagnostics_period": 0.5, "control_period": period,
-                               "loop_delay": loop_delay(period, bridge_params.get("answer_wait", _BRIDGE_ANSWER_WAIT)),
+                               "loop_delay": loop_delay(period, bridge_params.get("answer_wait", _BRIDGE_DEFAULTS["answer_wait"])),
                                **(compensator or {}), **loop},
             "motoplus_bridge": {"port": robot_port, "period": period, "diagnostics_period": 0.5,
                                 "max_step": self.max_step.tolist(), **bridge_params, **loop}}

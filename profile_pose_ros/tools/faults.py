@@ -28,6 +28,7 @@ import numpy as np
 
 from ..nodes.messages import stamp_ns, twist_vector
 from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
+from ..nodes.parameters import defaults
 from .config_files import CELL_CONTROL_LAW, add_control_law_option
 from .experiment import Experiment
 from .graph import Graph
@@ -40,7 +41,7 @@ SETTLE_S = 1.0
 BAD_POSE_M = 1e-3  # a wrong pose, not noise: the shipped gauge's weak y axis has ~75 um std, its worst glint poses ~0.35 mm
 STOP_PERIODS = 3
 TRUTH_MATCH_NS = 1_500_000  # under half the shortest trigger period (4 ms)
-_DEFAULTS = {p.name: p.default for p in BRIDGE_PARAMETERS}
+_DEFAULTS = defaults(BRIDGE_PARAMETERS)
 
 
 # The controller's apply time and the poses' stamps are read in different processes: on a saturated 2-core

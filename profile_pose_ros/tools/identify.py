@@ -153,9 +153,10 @@ def read_positions(bag: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(argv=None) -> int:
+    from ..nodes.parameters import defaults
     from ..nodes.pd_compensator import PARAMETERS
 
-    defaults = {p.name: p.default for p in PARAMETERS}
+    compensator = defaults(PARAMETERS)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bag", type=Path, help="a recording of a real cell's poses during small program steps")
     parser.add_argument("--topic", default="/pose", help="the poses in the bag (PoseStamped or with covariance)")
@@ -186,7 +187,7 @@ def main(argv=None) -> int:
                   f"{1e3 * m.delay_s:.1f} +- {1e3 * m.delay_sigma:.1f}", f"{1e6 * m.residual_rms:.1f}"]
                  for axis, m in modes.items()], title=f"the arm's mode from {sum(map(len, fits.values()))} steps of "
                                                       f"{args.size:g} mm (uncertainties: 1 sigma)"))
-    params = parameter_file(modes, defaults["modal_frequency"], defaults["modal_damping"])
+    params = parameter_file(modes, compensator["modal_frequency"], compensator["modal_damping"])
     text = ("# profile_pose_identify: pd_compensator's modal model, identified from "
             + (f"{args.bag}" if args.bag else "the simulated cell") + "\n"
             + yaml.safe_dump(params, default_flow_style=None, sort_keys=False))

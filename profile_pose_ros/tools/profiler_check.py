@@ -85,8 +85,8 @@ class CheckRun:
         return self._compare()
 
     def _counts_settled(self, quiet_s: float = 1.2):
-        """A condition: true once no count has changed for quiet_s (over two diagnostics periods). A fixed
-        wait read a loaded runner's driver 4 profiles short: its last diagnostics had not come yet."""
+        """A condition: true once no count has changed for quiet_s (over two diagnostics periods): on a busy
+        PC a node's last diagnostics can come later than any fixed wait."""
         state = {"counts": None, "since": time.monotonic()}
 
         def settled() -> bool:

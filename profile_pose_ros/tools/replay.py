@@ -26,9 +26,10 @@ TRUTH_TOPIC = "/sim/ground_truth"
 
 
 def estimator_values(params_file: str | None, overrides: dict, namespace: str = "") -> dict:
+    from ..nodes.parameters import defaults
     from ..nodes.pose_estimator import NODE_NAME, PARAMETERS
 
-    values = {p.name: p.default for p in PARAMETERS}
+    values = defaults(PARAMETERS)
     given = dict(node_parameters(params_file, NODE_NAME, namespace, set(values)) if params_file else {})
     given.update(overrides)
     unknown = sorted(set(given) - set(values))
