@@ -140,14 +140,15 @@ def test_damaged_frames_are_counted_and_never_published(rig_factory) -> None:
 
 
 def test_reconnects_within_a_second_when_the_device_closes(rig_factory) -> None:
-    rig = rig_factory()
+    # This test is about reconnects, not stamp quality: a USB adapter's bound (3 ms) keeps a loaded runner's
+    # slow PINGs (a clean-clone CI run: 213 of 349 profiles over the default 0.2 ms) from hiding them
+    rig = rig_factory(max_stamp_error=3e-3)
     rig.cell.profiler.faults.close_after_frames = 60
     rig.wait_ready()
     rig.run(100.0, 400)
     c = rig.link.counters
     assert rig.cell.profiler.closes >= 5 and c.connections >= 6
     # every frame accounted for: published, or dropped, late or with a stamp the clock map could not confirm
-    # (a loaded runner's MCU clock map: 24 of 350 in one clean-clone run, which the old sum left out)
     assert c.dropped == rig.cell.profiler.frames_unsent
     assert c.published + c.dropped + c.late_lines + c.unconfirmed == 400
     assert c.late_lines <= 4 and c.unconfirmed <= 40
