@@ -10,7 +10,7 @@ PACKAGE = "profile_pose_ros"
 EXECUTABLES = {
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator:main",
     "profiler_driver": "profile_pose_ros.nodes.profiler_driver:main",
-    "sim_cell": "profile_pose_ros.sim.sim_cell:main",
+    "sim_cell": "profile_pose_ros.nodes.sim_cell:main",
     "pd_compensator": "profile_pose_ros.nodes.pd_compensator:main",
     "motoplus_bridge": "profile_pose_ros.nodes.motoplus_bridge:main",
     "cell_container": "profile_pose_ros.nodes.cell_container:main",  # the four loop nodes in one process

@@ -154,7 +154,7 @@ def test_a_namespace_and_a_frame_prefix_keep_cells_apart(ros) -> None:
     from rclpy.parameter import Parameter
 
     from profile_pose_ros.nodes import motoplus_bridge, pd_compensator, pose_estimator, profiler_driver
-    from profile_pose_ros.sim import sim_cell
+    from profile_pose_ros.nodes import sim_cell
     from profile_pose_ros.tools.bringup import FRAME_PARAMETERS, prefixed_frames
 
     sim = ros.add(sim_cell.SimCellNode(context=ros.context, namespace="cell_x", parameter_overrides=[

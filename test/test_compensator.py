@@ -11,9 +11,9 @@ from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamp
 from rclpy.parameter import Parameter
 from rclpy.time import Time
 
-from profile_pose_ros.core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base,
-                                               pd_velocity, zvd_impulses)
-from profile_pose_ros.core.poses import LOOKING_DOWN
+from profile_pose_ros.core.control.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base,
+                                                       pd_velocity, zvd_impulses)
+from profile_pose_ros.core.model.poses import LOOKING_DOWN
 from profile_pose_ros.nodes.messages import pose_stamped, pose_with_covariance
 from profile_pose_ros.nodes.pd_compensator import PdCompensatorNode
 from profile_pose_ros.sim.arm import Arm

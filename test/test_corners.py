@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import detect_corners, render_profile, sample_pose, true_corners
-from profile_pose_ros.core.poses import LOOKING_DOWN
+from profile_pose_ros.core.model.poses import LOOKING_DOWN
 
 
 @pytest.fixture
@@ -76,7 +76,7 @@ def test_corner_covariance_matches_monte_carlo(gauge, rng):
 
 
 def test_side_wall_is_dropped(gauge):
-    from profile_pose_ros.core.rotation import so3_exp
+    from profile_pose_ros.core.model.rotation import so3_exp
 
     rotation = so3_exp(np.array([0.0, np.radians(9.0), 0.0])) @ LOOKING_DOWN
     t = np.array([0.0, 0.0, 0.03]) - 0.4 * rotation[:, 2]

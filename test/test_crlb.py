@@ -3,10 +3,10 @@ the corner model, and the refined estimator close to the corner-model bound (it 
 import numpy as np
 
 from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
-from profile_pose_ros.core.crlb import corner_crlb, dense_crlb, depth_jacobian, position_rotation_rms
-from profile_pose_ros.core.poses import LOOKING_DOWN
-from profile_pose_ros.core.render import DEFAULT_PROFILER
-from profile_pose_ros.core.rotation import so3_log
+from profile_pose_ros.core.design.crlb import corner_crlb, dense_crlb, depth_jacobian, position_rotation_rms
+from profile_pose_ros.core.model.poses import LOOKING_DOWN
+from profile_pose_ros.core.model.render import DEFAULT_PROFILER
+from profile_pose_ros.core.model.rotation import so3_log
 
 
 def test_depth_derivatives_match_the_plane_equation(gauge):
@@ -48,7 +48,7 @@ def test_analytic_dense_bound_matches_finite_differences(gauge):
     """Straight down nothing but top faces is lit, so both ways of building the bound must agree."""
     t = np.array([0.002, -0.004, 0.45])
     numeric, _ = depth_jacobian(gauge, LOOKING_DOWN, t)
-    from profile_pose_ros.core.estimator import ros_covariance
+    from profile_pose_ros.core.estimation.result import ros_covariance
 
     by_differences = ros_covariance(LOOKING_DOWN, (5e-6) ** 2 * np.linalg.inv(numeric.T @ numeric))
     analytic = dense_crlb(gauge, LOOKING_DOWN, t, 5e-6)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import estimate_pose, pose_error, render_profile, sample_pose
-from profile_pose_ros.core.crlb import dense_crlb, position_rotation_rms
-from profile_pose_ros.core.rotation import so3_log
+from profile_pose_ros.core.design.crlb import dense_crlb, position_rotation_rms
+from profile_pose_ros.core.model.rotation import so3_log
 
 
 def test_dense_is_exact_on_clean_profiles(gauge, rng):
@@ -47,9 +47,9 @@ def test_refine_model_is_validated():
 def test_compiled_dense_refinement_is_the_numpy_one(gauge, rng):
     """The node's compiled dense refinement against dense.py: same points kept, same minimiser (the steps
     are solved by Cholesky there, by SVD least squares here)."""
-    from profile_pose_ros.core.dense import refine_dense
-    from profile_pose_ros.core.fast_wrapper import refine_dense_compiled
-    from profile_pose_ros.core.rotation import rotation_angle
+    from profile_pose_ros.core.estimation.dense import refine_dense
+    from profile_pose_ros.core.estimation.compiled_path import refine_dense_compiled
+    from profile_pose_ros.core.model.rotation import rotation_angle
 
     for _ in range(15):
         rotation, translation = sample_pose(gauge, rng)

@@ -59,7 +59,7 @@ def test_the_simulated_cells_loop_timing_and_clamps_are_the_experiments() -> Non
     delay for the bridge's answer_wait, and per-period steps that are the speed limits over a period."""
     from profile_pose_ros.nodes.motoplus_bridge import PARAMETERS as BRIDGE
     from profile_pose_ros.nodes.parameters import defaults
-    from profile_pose_ros.sim.sim_cell import PARAMETERS as SIM
+    from profile_pose_ros.nodes.sim_cell import PARAMETERS as SIM
     from profile_pose_ros.tools.experiment import bridge_for, loop_delay, period_steps
 
     blocks = {key.split("/")[-1]: value["ros__parameters"]

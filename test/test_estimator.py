@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import (EstimatorOptions, estimate_pose, pose_error, render_profile, sample_pose)
-from profile_pose_ros.core.estimator import is_wrong_minimum
-from profile_pose_ros.core.gauge_design import heightfield_gauge, random_gauge
-from profile_pose_ros.core.rotation import so3_log
+from profile_pose_ros.core.estimation.estimator import is_wrong_minimum
+from profile_pose_ros.core.design.gauge_design import heightfield_gauge, random_gauge
+from profile_pose_ros.core.model.rotation import so3_log
 
 
 def test_noise_free_recovery_below_a_nanometre(gauge, rng):
@@ -64,7 +64,7 @@ def test_profile_of_another_gauge_gives_no_pose(gauge, rng):
 
 def test_four_ridge_gauges_are_solved_from_the_null_space_candidates():
     """n = 4: the paper's system is rank 8; the rotation constraints pick the starting pose."""
-    from profile_pose_ros.core.gauge_design import random_gauge
+    from profile_pose_ros.core.design.gauge_design import random_gauge
 
     rng = np.random.default_rng(8)
     for _ in range(10):
@@ -152,7 +152,7 @@ def test_two_equally_good_poses_centimetres_apart_are_rejected_as_ambiguous():
 
 
 def test_position_sigma_is_the_largest_eigenvalue_s_root():
-    from profile_pose_ros.core.estimator import position_sigma
+    from profile_pose_ros.core.estimation.result import position_sigma
 
     rng = np.random.default_rng(4)
     for scale in (1e-6, 1e-4, 1e-2):

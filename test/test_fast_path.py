@@ -1,4 +1,4 @@
-"""The compiled runtime path (core/fast.py) against the readable numpy reference: same decisions, same
+"""The compiled runtime path (core/compiled/estimate_kernel.py) against the readable numpy reference: same decisions, same
 reasons, and the same numbers within 1e-12 m (the refined pose is a Gauss-Newton fixed point, so both
 land on it to rounding)."""
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from profile_pose_ros.core import estimate_pose, render_profile, sample_pose, true_corners
-from profile_pose_ros.core.gauge_design import heightfield_gauge
+from profile_pose_ros.core.design.gauge_design import heightfield_gauge
 
 
 def both(points, gauge, **options):
@@ -74,11 +74,11 @@ def test_fast_and_plain_fail_with_the_same_reason(gauge, rng):
 def test_compiled_refine_equals_solver_refine_from_far_starts(rng, n):
     """The basin search's hops and the four-ridge starts (refine_compiled) on random gauges: the same minimum,
     the same covariance, with and without the polish and the weights."""
-    from profile_pose_ros.core.corners import detect_corners
-    from profile_pose_ros.core.fast_wrapper import refine_compiled
-    from profile_pose_ros.core.gauge_design import random_gauge
-    from profile_pose_ros.core.rotation import so3_exp
-    from profile_pose_ros.core.solver import PoseSolution, corner_residuals, refine
+    from profile_pose_ros.core.estimation.corners import detect_corners
+    from profile_pose_ros.core.estimation.compiled_path import refine_compiled
+    from profile_pose_ros.core.design.gauge_design import random_gauge
+    from profile_pose_ros.core.model.rotation import so3_exp
+    from profile_pose_ros.core.estimation.solver import PoseSolution, corner_residuals, refine
 
     compared = 0
     while compared < 12:
@@ -107,7 +107,7 @@ def test_compiled_refine_equals_solver_refine_from_far_starts(rng, n):
 
 def test_fast_equals_plain_on_four_ridge_and_searched_poses(rng):
     """The compiled path's fallbacks (n = 4 starts, the basin search) now refine with the compiled kernel."""
-    from profile_pose_ros.core.gauge_design import random_gauge
+    from profile_pose_ros.core.design.gauge_design import random_gauge
 
     searched = 0
     for n in (4, 5, 7):
@@ -130,9 +130,9 @@ def test_fast_equals_plain_on_four_ridge_and_searched_poses(rng):
 
 def test_compiled_detection_equals_detect_corners(rng):
     """The numpy stages' compiled corner detection: same corners, face fits, covariance and failure reasons."""
-    from profile_pose_ros.core.corners import CornerOptions, detect_corners
-    from profile_pose_ros.core.fast_wrapper import detect_corners_compiled
-    from profile_pose_ros.core.gauge_design import random_gauge
+    from profile_pose_ros.core.estimation.corners import CornerOptions, detect_corners
+    from profile_pose_ros.core.estimation.compiled_path import detect_corners_compiled
+    from profile_pose_ros.core.design.gauge_design import random_gauge
 
     for n in (4, 5, 7, 10):
         gauge = random_gauge(n, rng)
@@ -160,28 +160,28 @@ def test_polar_rotation_is_the_svd_s_nearest_rotation(seed, noise, scale):
     """The closed form's projection onto SO(3) without LAPACK: U V^T of the SVD to rounding, or it declines."""
     from scipy.spatial.transform import Rotation
 
-    from profile_pose_ros.core import fast
+    from profile_pose_ros.core.compiled import estimate_kernel
 
     rng = np.random.default_rng(seed)
     m = scale * (Rotation.random(random_state=seed).as_matrix() + rng.normal(0.0, noise, (3, 3)))
     out = np.full((3, 3), np.nan)
     u, _, vt = np.linalg.svd(m)
-    if fast._polar_rotation(m, out):
+    if estimate_kernel._polar_rotation(m, out):
         assert np.max(np.abs(out - u @ vt)) < 1e-13
         assert np.linalg.det(m) > 0
     else:  # only for a reflection, which the SVD path then handles
         assert np.linalg.det(m) <= 0
-    assert not fast._polar_rotation(-m, out) or np.linalg.det(-m) > 0
+    assert not estimate_kernel._polar_rotation(-m, out) or np.linalg.det(-m) > 0
 
 
 @given(st.integers(0, 2**32 - 1), st.integers(3, 400), st.sampled_from([0.0, 1e-6, 5e-5]),
        st.sampled_from([1e-5, 3e-4, 2e-3]))
 @settings(max_examples=300, deadline=None)
 def test_compiled_rdp_keeps_the_reference_s_vertices(seed, n, noise, epsilon):
-    """fast._rdp (vectorised passes, argmax by bit pattern) against rdp.rdp_vertices, ties included: a
+    """estimate_kernel._rdp (vectorised passes, argmax by bit pattern) against rdp.rdp_vertices, ties included: a
     noiseless polyline has many equal distances, and both must split at the first."""
-    from profile_pose_ros.core import fast
-    from profile_pose_ros.core.rdp import rdp_vertices
+    from profile_pose_ros.core.compiled import estimate_kernel
+    from profile_pose_ros.core.estimation.rdp import rdp_vertices
 
     rng = np.random.default_rng(seed)
     x = np.sort(rng.uniform(-0.05, 0.05, n)) + np.arange(n) * 1e-9  # strictly increasing, as detection needs
@@ -190,5 +190,5 @@ def test_compiled_rdp_keeps_the_reference_s_vertices(seed, n, noise, epsilon):
     if rng.random() < 0.3:
         z = np.round(z, 4)  # plateaus: equal distances
     keep, stack, scratch = np.empty(n, dtype=np.bool_), np.empty(2 * n + 4, dtype=np.int64), np.empty(n)
-    fast._rdp(x, z, epsilon, keep, stack, scratch)
+    estimate_kernel._rdp(x, z, epsilon, keep, stack, scratch)
     assert np.array_equal(np.nonzero(keep)[0], rdp_vertices(np.column_stack([x, z]), epsilon))

@@ -29,7 +29,7 @@ def test_the_node_fuzzer_catches_a_node_without_one_of_its_checks(monkeypatch, m
 
 def test_a_rogue_correction_of_1e300_m_per_s_is_clamped_not_an_overflow() -> None:
     """Found by the node fuzzer: the bridge's socket thread raised OverflowError turning it into units."""
-    from profile_pose_ros.core import motoplus_protocol as mp
+    from profile_pose_ros.core.wire import motoplus_protocol as mp
     from profile_pose_ros.devices.motoplus_client import MotoPlusClient, SessionLimits
 
     limits = SessionLimits()

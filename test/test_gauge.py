@@ -7,7 +7,7 @@ import yaml
 
 from conftest import PAPER_GAUGE
 from profile_pose_ros.core import Gauge, GaugeError
-from profile_pose_ros.core.gauge_design import heightfield_gauge
+from profile_pose_ros.core.design.gauge_design import heightfield_gauge
 
 
 def paper_document():

@@ -9,10 +9,10 @@ import yaml
 
 from conftest import PAPER_GAUGE
 from profile_pose_ros.core import Gauge
-from profile_pose_ros.core.gauge_check import RequiredMotion, check_rules, motion_poses, range_of_motion
-from profile_pose_ros.core.gauge_design import RandomGaugeRules, heightfield_gauge
-from profile_pose_ros.core.gauge_mesh import gauge_mesh
-from profile_pose_ros.core.gauge_search import INVALID, DesignSpace
+from profile_pose_ros.core.design.gauge_check import RequiredMotion, check_rules, motion_poses, range_of_motion
+from profile_pose_ros.core.design.gauge_design import RandomGaugeRules, heightfield_gauge
+from profile_pose_ros.core.model.gauge_mesh import gauge_mesh
+from profile_pose_ros.core.design.gauge_search import INVALID, DesignSpace
 from profile_pose_ros.tools import gauge_cli
 
 RULES = RandomGaugeRules(min_face_width=0.0035)

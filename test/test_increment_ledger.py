@@ -1,7 +1,7 @@
 """IncrementLedger: what the controller never applied, from its STATEs (pure code)."""
 import numpy as np
 
-from profile_pose_ros.core.increment_ledger import IncrementLedger
+from profile_pose_ros.core.control.increment_ledger import IncrementLedger
 
 
 def units(x: int) -> tuple[int, ...]:

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import EstimatorOptions, render_profile, sample_pose
-from profile_pose_ros.core import aot, fast
-from profile_pose_ros.core.estimator import position_sigma
-from profile_pose_ros.core.fast_wrapper import option_vector
+from profile_pose_ros.core.compiled import aot
+from profile_pose_ros.core.compiled import estimate_kernel
+from profile_pose_ros.core.estimation.result import position_sigma
+from profile_pose_ros.core.estimation.compiled_path import option_vector
 
 
 def run(kernel, points, gauge, opt):
@@ -27,7 +28,7 @@ def test_prebuilt_and_jit_kernels_agree(gauge, rng):
     opt = option_vector(EstimatorOptions())
     for _ in range(30):
         points = render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng)
-        (status_a, outs_a), (status_j, outs_j) = run(module.estimate, points, gauge, opt), run(fast.estimate, points,
+        (status_a, outs_a), (status_j, outs_j) = run(module.estimate, points, gauge, opt), run(estimate_kernel.estimate, points,
                                                                                               gauge, opt)
         assert status_a[0] == status_j[0] == 0
         # the compiled largest position standard deviation is estimator.position_sigma's
@@ -39,9 +40,9 @@ def test_prebuilt_and_jit_kernels_agree(gauge, rng):
 
 
 def test_node_side_import_does_not_load_numba(gauge):
-    code = ("import sys; from profile_pose_ros.core import Gauge; from profile_pose_ros.core.fast_wrapper import "
-            f"warm_up, kernel; warm_up(Gauge.from_yaml({str(gauge.source)!r})); "
-            "import profile_pose_ros.core.fast_wrapper as w; print(w.kernel_name, 'numba' in sys.modules)")
+    code = ("import sys; from profile_pose_ros.core import Gauge; from profile_pose_ros.core.estimation.compiled_path "
+            f"import warm_up; warm_up(Gauge.from_yaml({str(gauge.source)!r})); "
+            "from profile_pose_ros.core.compiled import loader; print(loader.kernel_name(), 'numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600).stdout.split()
     assert out[-1] == "False" and "aot" in " ".join(out)
 

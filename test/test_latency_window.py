@@ -1,9 +1,9 @@
-"""The nodes' own stage timing (core/latency_window.py) and loss counting (core/sequence_gaps.py)."""
+"""The nodes' own stage timing (core/timing/latency_window.py) and loss counting (core/timing/sequence_gaps.py)."""
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from profile_pose_ros.core.latency_window import LatencyWindow, pooled
-from profile_pose_ros.core.sequence_gaps import SequenceGaps
+from profile_pose_ros.core.timing.latency_window import LatencyWindow, pooled
+from profile_pose_ros.core.timing.sequence_gaps import SequenceGaps
 
 
 def test_a_window_reports_and_starts_afresh() -> None:

@@ -12,7 +12,7 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 
 from profile_pose_ros.core import render_profile, sample_pose
-from profile_pose_ros.core.profiler_protocol import z_counts
+from profile_pose_ros.core.wire.profiler_protocol import z_counts
 from profile_pose_ros.devices.ljx import LjxError, LjxProfileSource
 from profile_pose_ros.nodes.messages import points_from_cloud
 from profile_pose_ros.nodes.profiler_driver import ProfilerDriverNode

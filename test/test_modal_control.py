@@ -1,4 +1,4 @@
-"""The modal law (core/modal_control.py) on sim_cell's arm model, without ROS: its model of the loop is
+"""The modal law (core/control/modal_control.py) on sim_cell's arm model, without ROS: its model of the loop is
 right, it damps the mode where the PD law only avoids it, and it gets there through lost increments."""
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from profile_pose_ros.core.compensator import (AxisKalman, Gains, InputShaper, pd_velocity, zero_vibration_impulses,
-                                               zvd_impulses)
-from profile_pose_ros.core.modal_control import (MAX_GAP, ModalController, ModalDesign, axis_model,
-                                                 shaped_step_increments)
+from profile_pose_ros.core.control.compensator import (AxisKalman, Gains, InputShaper, pd_velocity, zero_vibration_impulses,
+                                                       zvd_impulses)
+from profile_pose_ros.core.control.modal_control import (MAX_GAP, ModalController, ModalDesign, axis_model,
+                                                         shaped_step_increments)
 from profile_pose_ros.sim.arm import Arm, ArmModel
 
 TICK, TICKS = 0.004, 3

@@ -1,4 +1,4 @@
-"""Identifying the arm's mode from small steps (core/mode_identification.py, tools/identify.py), on
+"""Identifying the arm's mode from small steps (core/control/mode_identification.py, tools/identify.py), on
 sim_cell's arm model sampled as the profiler sees it: the fit finds the arm's frequency and small-motion
 damping, says how sure it is, and finds the steps in a recording by itself."""
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from profile_pose_ros.core.mode_identification import combine, fit_step, step_response
+from profile_pose_ros.core.control.mode_identification import combine, fit_step, step_response
 from profile_pose_ros.sim.arm import DT, Arm, ArmModel
 from profile_pose_ros.tools.identify import find_steps, fit_recorded
 

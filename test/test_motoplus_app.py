@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from profile_pose_ros.core import motoplus_protocol as mp
+from profile_pose_ros.core.wire import motoplus_protocol as mp
 from profile_pose_ros.sim import motoplus_app
 from profile_pose_ros.sim.motoplus_app import HostApplication
 from profile_pose_ros.sim.robot_controller import DEFAULT_LIMITS, configuration

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from profile_pose_ros.core import motoplus_protocol as mp
+from profile_pose_ros.core.wire import motoplus_protocol as mp
 from profile_pose_ros.sim.motoplus_app import STRICT, sanitizers
 from profile_pose_ros.tools import motoplus_vectors
 from profile_pose_ros.tools.c_codec import (ERROR_NAMES, SOURCE, CCodec, available, same_frame,

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from profile_pose_ros.core import motoplus_protocol as mp
+from profile_pose_ros.core.wire import motoplus_protocol as mp
 
 I32 = st.integers(-2 ** 31, 2 ** 31 - 1)
 U32 = st.integers(0, 2 ** 32 - 1)

@@ -9,7 +9,7 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
 from profile_pose_ros.nodes import motoplus_bridge, pd_compensator, pose_estimator, profiler_driver
-from profile_pose_ros.sim import sim_cell
+from profile_pose_ros.nodes import sim_cell
 
 NODES = {
     "profiler_driver": (profiler_driver, lambda ctx: profiler_driver.ProfilerDriverNode(

@@ -1,4 +1,4 @@
-"""The loop's small messages travel serialized (core/pose_cdr.py): the estimator's poses and the
+"""The loop's small messages travel serialized (core/wire/pose_cdr.py): the estimator's poses and the
 compensator's corrections are the bytes rclpy would send, and what the compensator and the bridge read back
 is the message, or CdrFormatError (fuzzed in test_fuzz.py)."""
 import numpy as np
@@ -9,9 +9,9 @@ from hypothesis import given, settings, strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
 
 from profile_pose_ros.bags.reader import typestore
-from profile_pose_ros.core.pose_cdr import (CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr,
-                                            decode_twist_cdr, encode_pose_cdr, encode_twist_cdr)
-from profile_pose_ros.core.rotation import so3_exp
+from profile_pose_ros.core.wire.pose_cdr import (CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr,
+                                                 decode_twist_cdr, encode_pose_cdr, encode_twist_cdr)
+from profile_pose_ros.core.model.rotation import so3_exp
 from profile_pose_ros.nodes.messages import PoseMessagePair, twist_stamped
 
 TYPES = {"pose": "geometry_msgs/msg/PoseStamped", "with_covariance": "geometry_msgs/msg/PoseWithCovarianceStamped"}
@@ -89,8 +89,8 @@ def test_consecutive_poses_near_a_half_turn_keep_one_hemisphere() -> None:
     """A profiler looking down on the gauge sits near a half turn, where w crosses zero: signed by w >= 0 the
     quaternion flipped between consecutive poses; signed against the orientation hint it never does, and the
     bytes still decode to the same rotation."""
-    from profile_pose_ros.core.pose_cdr import SerializedPosePair, decode_pose_with_covariance_cdr
-    from profile_pose_ros.core.rotation import quaternion_xyzw, rotation_from_quaternion_xyzw, so3_exp
+    from profile_pose_ros.core.wire.pose_cdr import SerializedPosePair, decode_pose_with_covariance_cdr
+    from profile_pose_ros.core.model.rotation import quaternion_xyzw, rotation_from_quaternion_xyzw, so3_exp
 
     rng = np.random.default_rng(3)
     rotations = [so3_exp(np.array([np.pi, 0.0, 0.0]) + rng.normal(0.0, 2e-3, 3)) for _ in range(200)]

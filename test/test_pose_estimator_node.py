@@ -13,8 +13,8 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2, PointField
 
 from profile_pose_ros.core import Gauge, GaugeError, pose_error, render_profile, sample_pose, true_corners
-from profile_pose_ros.core.gauge_design import heightfield_gauge
-from profile_pose_ros.core.rotation import so3_log
+from profile_pose_ros.core.design.gauge_design import heightfield_gauge
+from profile_pose_ros.core.model.rotation import so3_log
 from profile_pose_ros.nodes.messages import cloud_from_points, rotation_translation
 from profile_pose_ros.nodes.pose_estimator import PoseEstimatorNode
 

@@ -8,8 +8,8 @@ from hypothesis import strategies as st
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2, PointField
 
-from profile_pose_ros.core.profile_cdr import decode_profile_cdr, encode_profile_cdr
-from profile_pose_ros.core.profile_cloud import ProfileFormatError
+from profile_pose_ros.core.wire.profile_cdr import decode_profile_cdr, encode_profile_cdr
+from profile_pose_ros.core.wire.profile_cloud import ProfileFormatError
 from profile_pose_ros.nodes.messages import cloud_from_points, points_from_cloud
 
 
@@ -115,7 +115,7 @@ def test_a_layout_remembered_from_the_last_profile_reads_as_a_fresh_parse(data):
     """decode_profile_cdr skips re-reading a layout it has just read: whatever follows a good profile
     (another layout, a changed field, padding, truncation, trailing bytes) must read exactly as if nothing
     had been remembered."""
-    import profile_pose_ros.core.profile_cdr as module
+    import profile_pose_ros.core.wire.profile_cdr as module
 
     good = serialize_message(cloud(data.draw(st.sampled_from(["profiler", "p", ""])), data.draw(st.booleans())))
     message = bytearray(good)
@@ -132,7 +132,7 @@ def test_a_layout_remembered_from_the_last_profile_reads_as_a_fresh_parse(data):
 
 def test_padding_does_not_hide_a_known_layout(monkeypatch):
     """rclpy's padding bytes differ from message to message: a layout is recognised without them."""
-    import profile_pose_ros.core.profile_cdr as module
+    import profile_pose_ros.core.wire.profile_cdr as module
 
     first, second = serialize_message(cloud()), bytearray(serialize_message(cloud()))
     decode_profile_cdr(first)

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from profile_pose_ros.core.profile_cloud import FLOAT32, Field, ProfileFormatError, decode_profile, encode_profile
+from profile_pose_ros.core.wire.profile_cloud import FLOAT32, Field, ProfileFormatError, decode_profile, encode_profile
 
 FLOAT64 = 8
 

@@ -8,9 +8,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from profile_pose_ros.core.profiler_protocol import (CRC, HEADER, HEADER_SIZE, INVALID_Z, TYPE_HEARTBEAT, FrameDecoder,
-                                                     ProfileFrame, ProfilerProtocolError, decode_frame, encode_frame,
-                                                     z_counts)
+from profile_pose_ros.core.wire.profiler_protocol import (CRC, HEADER, HEADER_SIZE, INVALID_Z, TYPE_HEARTBEAT, FrameDecoder,
+                                                          ProfileFrame, ProfilerProtocolError, decode_frame, encode_frame,
+                                                          z_counts)
 from profile_pose_ros.sim.profiler_device import CORRUPT_MODES, corrupt
 
 Z = np.array([0.4, np.nan, 0.41234567, -0.001, np.inf, 0.5])
@@ -110,8 +110,8 @@ def test_the_point_table_from_the_counts_is_the_table_from_the_points(counts: li
                                                                        x_pitch: float) -> None:
     """The driver publishes ProfileFrame.xyz_table (straight from the device's counts, every invalid code
     included); it must be byte for byte the cloud the float64 points would give."""
-    from profile_pose_ros.core.profile_cdr import encode_profile_cdr, encode_xyz_table_cdr
-    from profile_pose_ros.core.profiler_protocol import ProfileFrame
+    from profile_pose_ros.core.wire.profile_cdr import encode_profile_cdr, encode_xyz_table_cdr
+    from profile_pose_ros.core.wire.profiler_protocol import ProfileFrame
 
     frame_ = ProfileFrame(1, 2, x_start, x_pitch, np.array(counts, dtype="<i4"))
     assert encode_xyz_table_cdr(frame_.xyz_table(), 17, 42, "profiler") == \

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
-from profile_pose_ros.core.gauge_design import RandomGaugeRules, distinct_directions, face_widths, random_gauge
+from profile_pose_ros.core.design.gauge_design import RandomGaugeRules, distinct_directions, face_widths, random_gauge
 
 RULES = RandomGaugeRules()
 

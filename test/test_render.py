@@ -3,10 +3,10 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import DEFAULT_PROFILER, ProfilerModel, render_profile, true_corners
-from profile_pose_ros.core.gauge_design import heightfield_gauge
-from profile_pose_ros.core.poses import LOOKING_DOWN
-from profile_pose_ros.core.render import shadow_mask
-from profile_pose_ros.core.rotation import so3_exp
+from profile_pose_ros.core.design.gauge_design import heightfield_gauge
+from profile_pose_ros.core.model.poses import LOOKING_DOWN
+from profile_pose_ros.core.model.render import shadow_mask
+from profile_pose_ros.core.model.rotation import so3_exp
 
 
 def to_gauge(profile, rotation, translation):
@@ -101,11 +101,11 @@ def test_true_corners_lie_on_both_faces(gauge):
 
 
 def test_compiled_trace_equals_the_reference(gauge) -> None:
-    """sim_cell renders with render_fast's compiled trace; it must see exactly what the reference sees,
+    """sim_cell renders with render_kernel's compiled trace; it must see exactly what the reference sees,
     side walls and misses included (poses far off the gauge, tilted, and random gauges)."""
-    from profile_pose_ros.core.gauge_design import random_gauge
-    from profile_pose_ros.core.render import trace_depth
-    from profile_pose_ros.core.render_fast import trace_depth_fast
+    from profile_pose_ros.core.design.gauge_design import random_gauge
+    from profile_pose_ros.core.model.render import trace_depth
+    from profile_pose_ros.core.compiled.render_kernel import trace_depth_fast
 
     rng = np.random.default_rng(11)
     gauges = [gauge] + [random_gauge(n, rng) for n in (4, 7)]
@@ -124,9 +124,9 @@ def test_compiled_shadow_and_range_equal_the_reference(gauge) -> None:
     """sim_cell's one compiled pass (trace, emitter shadow, measurement range) hides exactly the points
     the reference hides; the poses are tilted enough that some are shadowed, and a narrow profiler
     model clips the range."""
-    from profile_pose_ros.core.gauge_design import random_gauge
-    from profile_pose_ros.core.render import visible_depth
-    from profile_pose_ros.core.render_fast import trace_depth_fast, visible_depth_fast
+    from profile_pose_ros.core.design.gauge_design import random_gauge
+    from profile_pose_ros.core.model.render import visible_depth
+    from profile_pose_ros.core.compiled.render_kernel import trace_depth_fast, visible_depth_fast
 
     rng = np.random.default_rng(12)
     models = [DEFAULT_PROFILER, ProfilerModel(z_near=0.40, z_far=0.47, width_near=0.05, width_far=0.09),

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from profile_pose_ros.core import motoplus_protocol as mp
+from profile_pose_ros.core.wire import motoplus_protocol as mp
 from profile_pose_ros.sim.arm import Arm
 from profile_pose_ros.sim.robot_controller import RobotController
 

@@ -13,8 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from profile_pose_ros.core import motoplus_protocol as mp
-from profile_pose_ros.core.safety import INVARIANTS, SafetyMonitor
+from profile_pose_ros.core.wire import motoplus_protocol as mp
+from profile_pose_ros.core.control.safety import INVARIANTS, SafetyMonitor
 from profile_pose_ros.devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from profile_pose_ros.sim.arm import Arm
 from profile_pose_ros.sim.robot_controller import DEFAULT_LIMITS, RobotController

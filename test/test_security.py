@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-from profile_pose_ros.sim import sim_cell
+from profile_pose_ros.nodes import sim_cell
 from profile_pose_ros.sim.arm import Arm
 from profile_pose_ros.sim.profiler_device import ProfilerDevice
 from profile_pose_ros.sim.robot_controller import RobotController

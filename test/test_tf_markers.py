@@ -15,8 +15,8 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
 from profile_pose_ros.core import pose_error, render_profile, sample_pose
-from profile_pose_ros.core.rotation import rotation_from_quaternion_xyzw, so3_exp
-from profile_pose_ros.core.scene import gauge_triangles, profile_in_gauge
+from profile_pose_ros.core.model.rotation import rotation_from_quaternion_xyzw, so3_exp
+from profile_pose_ros.core.model.scene import gauge_triangles, profile_in_gauge
 from profile_pose_ros.nodes.messages import cloud_from_points
 from profile_pose_ros.nodes.pd_compensator import PdCompensatorNode
 from profile_pose_ros.nodes.pose_estimator import PoseEstimatorNode

@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from profile_pose_ros.core.clock_sync import ClockMap, SampleWindow, TriggerMatcher, chunk_minima, lower_envelope_slope
-from profile_pose_ros.core.trigger_protocol import (MICROS_WRAP, Ack, McuError, MicrosUnwrapper, Pong, Ready, Trigger,
-                                                    TriggerLineError, format_trigger, parse_line)
+from profile_pose_ros.core.timing.clock_sync import ClockMap, SampleWindow, TriggerMatcher, chunk_minima, lower_envelope_slope
+from profile_pose_ros.core.wire.trigger_protocol import (MICROS_WRAP, Ack, McuError, MicrosUnwrapper, Pong, Ready, Trigger,
+                                                         TriggerLineError, format_trigger, parse_line)
 
 
 def test_every_message_parses() -> None:

@@ -1,13 +1,23 @@
-"""Pure computation for profile_pose_ros: numpy/scipy only, never rclpy.
+"""Pure computation for profile_pose_ros: never rclpy. numpy and scipy throughout; numba only in compiled/.
+
+Rooms, each importing only those listed before it:
+    model       the gauge, rotations, poses, rendering a profile
+    timing      clock maps and stamp freshness (standalone)
+    compiled    numba kernels and the loader that picks their build
+    wire        CDR and device protocols (decoding a profile uses compiled.loader)
+    estimation  profile -> pose
+    control     compensators, limits, safety
+    design      gauge design and bounds
 
     from profile_pose_ros.core import Gauge, render_profile, estimate_pose
 """
-from .corners import CornerOptions, CornerResult, detect_corners
-from .estimator import EstimatorOptions, PoseEstimate, estimate_pose, pose_error
-from .gauge import Gauge, GaugeError
-from .poses import PoseRange, corners_visible, sample_pose
-from .render import DEFAULT_PROFILER, ProfilerModel, render_profile, true_corners
-from .solver import PoseSolution, closed_form
+from .estimation.corners import CornerOptions, CornerResult, detect_corners
+from .estimation.estimator import estimate_pose, pose_error
+from .estimation.result import EstimatorOptions, PoseEstimate
+from .estimation.solver import PoseSolution, closed_form
+from .model.gauge import Gauge, GaugeError
+from .model.poses import PoseRange, corners_visible, sample_pose
+from .model.render import DEFAULT_PROFILER, ProfilerModel, render_profile, true_corners
 
 __all__ = [
     "CornerOptions", "CornerResult", "DEFAULT_PROFILER", "EstimatorOptions", "Gauge", "GaugeError",

@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from ..core.profiler_protocol import ProfileFrame, ProfilerProtocolError
+from ..core.wire.profiler_protocol import ProfileFrame, ProfilerProtocolError
 
 RC_OK = 0
 NOTIFY_OK = (0, 0x10000)

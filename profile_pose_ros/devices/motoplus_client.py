@@ -21,9 +21,9 @@ from typing import Callable
 
 import numpy as np
 
-from ..core import motoplus_protocol as mp
-from ..core.increment_ledger import IncrementLedger
-from ..core.safety import SafetyMonitor
+from ..core.wire import motoplus_protocol as mp
+from ..core.control.increment_ledger import IncrementLedger
+from ..core.control.safety import SafetyMonitor
 
 # disarmed: no session wanted, no connection (the controller closes one that does not arm within a second);
 # disconnected: a session wanted, the connection not (yet) up; then connected, arming, armed.

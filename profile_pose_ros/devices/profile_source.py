@@ -5,7 +5,7 @@ import socket
 import time
 from typing import Protocol
 
-from ..core.profiler_protocol import TYPE_HEARTBEAT, FrameDecoder, ProfileFrame, ProfilerProtocolError
+from ..core.wire.profiler_protocol import TYPE_HEARTBEAT, FrameDecoder, ProfileFrame, ProfilerProtocolError
 
 SourceItem = ProfileFrame | ProfilerProtocolError
 

@@ -12,8 +12,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from ..core.clock_sync import TriggerMatcher
-from ..core.profiler_protocol import ProfileFrame, ProfilerProtocolError
+from ..core.timing.clock_sync import TriggerMatcher
+from ..core.wire.profiler_protocol import ProfileFrame, ProfilerProtocolError
 from .profile_source import ProfileSource
 from .trigger_link import CONNECTING as CONNECTING_MCU
 from .trigger_link import TriggerLink

@@ -16,9 +16,9 @@ from typing import Callable
 
 import serial
 
-from ..core.clock_sync import ClockMap
-from ..core.trigger_protocol import (MAX_LINE, MICROS_WRAP, Ack, McuError, MicrosUnwrapper, Pong, Ready, Trigger,
-                                     TriggerLineError, parse_line)
+from ..core.timing.clock_sync import ClockMap
+from ..core.wire.trigger_protocol import (MAX_LINE, MICROS_WRAP, Ack, McuError, MicrosUnwrapper, Pong, Ready, Trigger,
+                                          TriggerLineError, parse_line)
 
 DISCONNECTED, CONNECTING, OK, SILENT = "disconnected", "connecting", "ok", "silent"
 AUTO_LATENCY = -1.0  # trigger_latency: estimate the one-way link latency as half the fastest PING round trip

@@ -6,7 +6,7 @@ the disk, so a recorder that is killed loses at most that much (`profile_pose_ba
 a bag); Ctrl-C or SIGTERM closes it properly. Thin glue around profile_pose_ros.bags.BagWriter.
 
 Messages the recorder never got (its `queue_depth` overrun while it was busy, or lost on the way) are
-counted from the gaps in each writer's DDS sequence numbers (core/sequence_gaps.py) on the topics that
+counted from the gaps in each writer's DDS sequence numbers (core/timing/sequence_gaps.py) on the topics that
 have one publisher (most of a cell's; /diagnostics, with one per node, is not checked): a bag that is
 missing messages says so.
 """
@@ -22,7 +22,7 @@ from rclpy.node import Node
 
 from ..bags import BagError, BagWriter
 from ..bags.writer import COMPRESSIONS, STORAGES
-from ..core.sequence_gaps import SequenceGaps
+from ..core.timing.sequence_gaps import SequenceGaps
 from .bag_common import message_class, subscription_qos, to_bag_qos
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin

@@ -19,7 +19,7 @@ from __future__ import annotations
 import sys
 import time
 
-from ..core.gauge import GaugeError
+from ..core.model.gauge import GaugeError
 from .fast_input import serve_ready
 from .local_topics import LocalTopics
 from .motoplus_bridge import GIL_SWITCH_INTERVAL, MotoPlusBridgeNode

@@ -6,9 +6,9 @@ from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TwistStamped
 from sensor_msgs.msg import PointCloud2, PointField
 
-from ..core.cdr import HEADER, STAMP
-from ..core.profile_cloud import Field, decode_profile, encode_profile
-from ..core.rotation import HALF_TURN_X, quaternion_near, rotation_angle, rotation_from_quaternion_xyzw
+from ..core.wire.cdr import HEADER, STAMP
+from ..core.wire.profile_cloud import Field, decode_profile, encode_profile
+from ..core.model.rotation import HALF_TURN_X, quaternion_near, rotation_angle, rotation_from_quaternion_xyzw
 
 
 

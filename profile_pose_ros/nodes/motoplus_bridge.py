@@ -24,11 +24,11 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from ..core import motoplus_protocol as mp
-from ..core.freshness import describe_age, stamp_age_ok
-from ..core.latency_window import LatencyWindow
-from ..core.pose_cdr import CdrFormatError, decode_twist_cdr, encode_pose_cdr, encode_twist_cdr
-from ..core.rotation import so3_exp
+from ..core.wire import motoplus_protocol as mp
+from ..core.timing.freshness import describe_age, stamp_age_ok
+from ..core.timing.latency_window import LatencyWindow
+from ..core.wire.pose_cdr import CdrFormatError, decode_twist_cdr, encode_pose_cdr, encode_twist_cdr
+from ..core.model.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, RefusalCounter, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
@@ -114,7 +114,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
             local.take(self.resolve_topic_name("correction"), self._on_correction)
         else:
             corrections = self.create_subscription(TwistStamped, "correction", self._on_correction, LOOP_INPUT_QOS,
-                                                   callback_group=direct, raw=True)  # read by core/pose_cdr.py
+                                                   callback_group=direct, raw=True)  # read by core/wire/pose_cdr.py
             self.fast_input.add(corrections, self._on_correction)
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/stop", self._on_stop)
@@ -209,7 +209,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         trigger time of the newest correction in it."""
         with self._lock:
             sent, self._sent = self._sent, []
-        for stamp_ns, units in sent:  # serialized here (core/pose_cdr.py): 250 a second at the 4 ms clock
+        for stamp_ns, units in sent:  # serialized here (core/wire/pose_cdr.py): 250 a second at the 4 ms clock
             self.increment_pub.publish(encode_twist_cdr(mp.units_to_metres(units), stamp_ns, self.values["base_frame"]))
 
     def _on_state(self, state: mp.State, host_time: float) -> None:

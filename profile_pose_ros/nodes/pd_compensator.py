@@ -1,7 +1,7 @@
 """pd_compensator: `pose_with_covariance` and `reference_pose` (F in G) -> `correction` (TwistStamped, robot
 base frame): a PD law on the Kalman-filtered pose error, through an input shaper that keeps the arm's 10 Hz
-resonance out of the commands (core/compensator.py); or, with `control_law: modal`, a feedback of the arm
-mode's state that damps the resonance (core/modal_control.py).
+resonance out of the commands (core/control/compensator.py); or, with `control_law: modal`, a feedback of the arm
+mode's state that damps the resonance (core/control/modal_control.py).
 
 A stale pose (older than max_pose_age by its stamp, or stamped more than max_future ahead), a missing
 one (the estimator rejected the profile) or no reference gives a zero correction and a diagnostic. A pose
@@ -24,13 +24,13 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from tf2_msgs.msg import TFMessage
 
-from ..core.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base, pd_velocity,
-                                pose_vector_in_base, zvd_impulses)
-from ..core.freshness import describe_age, fresh_until, stamp_age_ok
-from ..core.latency_window import LatencyWindow
-from ..core.modal_control import ModalController, ModalDesign
-from ..core.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
-from ..core.rotation import rotation_from_quaternion_xyzw
+from ..core.control.compensator import (AxisKalman, Gains, InputShaper, Mounting, covariance_in_base, pd_velocity,
+                                        pose_vector_in_base, zvd_impulses)
+from ..core.timing.freshness import describe_age, fresh_until, stamp_age_ok
+from ..core.timing.latency_window import LatencyWindow
+from ..core.control.modal_control import ModalController, ModalDesign
+from ..core.wire.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
+from ..core.model.rotation import rotation_from_quaternion_xyzw
 from .diagnostics import OK, WARN, RefusalCounter, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
 from .local_topics import LOOP_INPUT_QOS, LocalTopics, LoopOutput
@@ -173,7 +173,7 @@ class PdCompensatorNode(RefusalCounter, Node):
         self._publish_gauge_place()
         # Poses are taken straight from their subscription (fast_input.py): through the executor each one
         # waited behind its per-wake-up bookkeeping and the 100 Hz watchdog, about a millisecond per hop here.
-        # ... and serialized: read with struct, corrections written the same way (core/pose_cdr.py)
+        # ... and serialized: read with struct, corrections written the same way (core/wire/pose_cdr.py)
         self.fast_input = FastInput(None, self.context, tick=self._watchdog)
         if local is not None:
             local.take(self.resolve_topic_name("pose_with_covariance"), self._on_pose)

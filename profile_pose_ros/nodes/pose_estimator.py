@@ -23,17 +23,18 @@ from sensor_msgs.msg import PointCloud2
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
-from ..core.estimator import WEIGHTINGS, EstimatorOptions, estimate_pose
-from ..core import fast_wrapper
-from ..core.fast_wrapper import warm_up
-from ..core.gauge import Gauge, GaugeError
-from ..core.latency_window import LatencyWindow
-from ..core.pose_cdr import SerializedPosePair
-from ..core.profile_cdr import ProfileMessage, decode_profile_cdr
-from ..core.profile_cloud import ProfileFormatError
-from ..core.rotation import HALF_TURN_X
-from ..core.scene import gauge_triangles, profile_in_gauge
-from ..core.sequence_gaps import SequenceGaps
+from ..core.compiled import loader
+from ..core.estimation.compiled_path import warm_up
+from ..core.estimation.estimator import estimate_pose
+from ..core.estimation.result import WEIGHTINGS, EstimatorOptions
+from ..core.model.gauge import Gauge, GaugeError
+from ..core.timing.latency_window import LatencyWindow
+from ..core.wire.pose_cdr import SerializedPosePair
+from ..core.wire.profile_cdr import ProfileMessage, decode_profile_cdr
+from ..core.wire.profile_cloud import ProfileFormatError
+from ..core.model.rotation import HALF_TURN_X
+from ..core.model.scene import gauge_triangles, profile_in_gauge
+from ..core.timing.sequence_gaps import SequenceGaps
 from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .fast_input import FastInput, ServedDirectly, spin
@@ -160,7 +161,7 @@ class PoseEstimatorNode(Node):
         self.gauge_file = self.values["gauge_file"] or str(config_path(DEFAULT_GAUGE))
         self.gauge = Gauge.from_yaml(self.gauge_file)  # GaugeError: main() reports it and exits
         self.options = options_from(self.values)
-        if fast_wrapper.will_compile():
+        if loader.will_compile():
             self.get_logger().info("compiling the estimator for this machine before the first profile "
                                    "(once per installed version, about a minute)")
         compile_s = warm_up(self.gauge, self.options)  # compile (or load) before the first profile
@@ -186,7 +187,7 @@ class PoseEstimatorNode(Node):
             local.take(self.resolve_topic_name("profile"), self._on_profile)
         else:
             self._subscribe_profiles()
-        self.outgoing = SerializedPosePair()  # published as bytes: core/pose_cdr.py
+        self.outgoing = SerializedPosePair()  # published as bytes: core/wire/pose_cdr.py
         self.tf_pub = self.create_publisher(TFMessage, "/tf", TF_QOS, event_callbacks=quiet)
         self.markers_pub = self.create_publisher(MarkerArray, "markers", MARKER_QOS, event_callbacks=quiet)
         self.scene = SceneMarkers(gauge_triangles(self.gauge), self.values["gauge_frame"])
@@ -194,7 +195,7 @@ class PoseEstimatorNode(Node):
         self.last_error = ""
         self.last_reprojection_error = float("nan")
         self.get_logger().info(f"gauge '{self.gauge.name}' ({self.gauge.n_ridges} ridges) from {self.gauge_file}; "
-                               f"estimator ({fast_wrapper.kernel_name}) ready in {compile_s:.2f} s"
+                               f"estimator ({loader.kernel_name()}) ready in {compile_s:.2f} s"
                                f"{'; composed' if local is not None else ''}")
 
     def _subscribe_profiles(self) -> None:

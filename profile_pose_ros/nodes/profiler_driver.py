@@ -14,9 +14,9 @@ from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 
-from ..core.latency_window import LatencyWindow
-from ..core.profile_cdr import encode_xyz_table_cdr
-from ..core.profiler_protocol import ProfileFrame
+from ..core.timing.latency_window import LatencyWindow
+from ..core.wire.profile_cdr import encode_xyz_table_cdr
+from ..core.wire.profiler_protocol import ProfileFrame
 from ..devices.ljx import LjxProfileSource
 from ..devices.profile_source import SimProfileSource
 from ..devices.profiler_link import STREAMING, LinkSettings, ProfilerLink
@@ -112,7 +112,7 @@ class ProfilerDriverNode(Node):
                     f"stamps from {v['stamp_source']}")
 
     def _emit(self, frame: ProfileFrame, stamp: float, synced: bool) -> None:
-        """Runs on the link's thread. Published serialized (core/profile_cdr.py): building the PointCloud2
+        """Runs on the link's thread. Published serialized (core/wire/profile_cdr.py): building the PointCloud2
         for rclpy to convert back was a third of this node's time per profile; the point table comes
         straight from the device's counts (ProfileFrame.xyz_table)."""
         sec, nanosec = divmod(int(round(stamp * 1e9)), 1_000_000_000)

@@ -9,7 +9,7 @@ from std_msgs.msg import ColorRGBA
 from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ..core.rotation import HALF_TURN_X, quaternion_near, so3_exp
+from ..core.model.rotation import HALF_TURN_X, quaternion_near, so3_exp
 from .messages import set_stamp
 
 # tf2_ros's own QoS: /tf keeps 100 transforms for slow listeners; /tf_static is latched (transient local)

@@ -14,9 +14,9 @@ from typing import Callable
 
 import numpy as np
 
-from ..core.gauge import Gauge
-from ..core.render import DEFAULT_PROFILER, ProfilerModel, render_profile
-from ..core.render_fast import visible_depth_fast
+from ..core.model.gauge import Gauge
+from ..core.model.render import DEFAULT_PROFILER, ProfilerModel, render_profile
+from ..core.compiled.render_kernel import visible_depth_fast
 from .motion import MotionSource
 from .profiler_device import ProfilerDevice
 from .trigger_mcu import TriggerMcu

@@ -7,7 +7,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..core.rotation import so3_exp
+from ..core.model.rotation import so3_exp
 
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 

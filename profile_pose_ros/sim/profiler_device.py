@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.profiler_protocol import CRC, HEADER, HEADER_SIZE, TYPE_HEARTBEAT, encode_frame
+from ..core.wire.profiler_protocol import CRC, HEADER, HEADER_SIZE, TYPE_HEARTBEAT, encode_frame
 from .peer_server import PeerServer
 
 CORRUPT_MODES = ("flip", "truncate", "version", "garbage")

@@ -17,8 +17,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..core import motoplus_protocol as mp
-from ..core.controller_limits import ControllerLimits
+from ..core.wire import motoplus_protocol as mp
+from ..core.control.controller_limits import ControllerLimits
 from .arm import Arm
 from .motoplus_app import HostApplication
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.trigger_protocol import COMMANDS, MICROS_WRAP, format_trigger
+from ..core.wire.trigger_protocol import COMMANDS, MICROS_WRAP, format_trigger
 from .peer_server import PeerServer
 from .precise_wait import wait_until
 

@@ -20,8 +20,8 @@ import time
 import numpy as np
 
 from ..core import EstimatorOptions, Gauge, estimate_pose, render_profile, sample_pose
-from ..core import fast
-from ..core.fast_wrapper import option_vector, warm_up
+from ..core.compiled import estimate_kernel
+from ..core.estimation.compiled_path import option_vector, warm_up
 from ..resources import DEFAULT_GAUGE, config_path
 from .plain_reference import estimate_reference
 from .report import run_dir, summary, table, write_json
@@ -44,20 +44,20 @@ def time_ours(gauge: Gauge, profiles: list[np.ndarray], options: EstimatorOption
     lines = np.empty((n + 1, 10))
     stages = {"CD": [], "PC closed form": [], "PC refined": [], "total (one call)": []}
     for points in profiles[:3]:  # each stage called from Python has its own entry point to compile/load
-        fast._detect(points, n, opt, corners, jac, line_var, info, lines)
-        fast._closed_form(gauge.q, gauge.u, gauge.w, corners, info)
+        estimate_kernel._detect(points, n, opt, corners, jac, line_var, info, lines)
+        estimate_kernel._closed_form(gauge.q, gauge.u, gauge.w, corners, info)
     for points in profiles:
         start = time.perf_counter()
-        fast._detect(points, n, opt, corners, jac, line_var, info, lines)
+        estimate_kernel._detect(points, n, opt, corners, jac, line_var, info, lines)
         detected = time.perf_counter()
-        _, rotation, translation = fast._closed_form(gauge.q, gauge.u, gauge.w, corners, info)
+        _, rotation, translation = estimate_kernel._closed_form(gauge.q, gauge.u, gauge.w, corners, info)
         solved = time.perf_counter()
         if not stages["CD"]:
-            fast._refine(gauge.q, gauge.u, gauge.w, corners, rotation, translation, jac @ np.diag(line_var) @ jac.T,
+            estimate_kernel._refine(gauge.q, gauge.u, gauge.w, corners, rotation, translation, jac @ np.diag(line_var) @ jac.T,
                          True, options.max_iterations, True, np.empty((6, 6)))
         corner_cov = jac @ np.diag(line_var) @ jac.T
         begun = time.perf_counter()
-        fast._refine(gauge.q, gauge.u, gauge.w, corners, rotation, translation, corner_cov, True,
+        estimate_kernel._refine(gauge.q, gauge.u, gauge.w, corners, rotation, translation, corner_cov, True,
                      options.max_iterations, True, np.empty((6, 6)))
         refined = time.perf_counter()
         stages["CD"].append(detected - start)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import ctypes
 
-from ..core import motoplus_protocol as mp
+from ..core.wire import motoplus_protocol as mp
 from ..sim.motoplus_app import build, compiler, firmware_dir
 from .motoplus_vectors import flatten, python_read
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import Gauge, estimate_pose, pose_error, render_profile, sample_pose
-from ..core.estimator import pose_nees
+from ..core.estimation.estimator import pose_nees
 from ..resources import DEFAULT_GAUGE, config_path
 from .node_process import NodeProcess
 from .report import run_dir, summary, table, write_json

@@ -22,7 +22,7 @@ from ..nodes.messages import pose_stamped, rotation_translation, stamp_ns
 from ..nodes.parameters import defaults
 from ..nodes.pd_compensator import PARAMETERS as COMPENSATOR_PARAMETERS
 from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
-from ..sim.sim_cell import PARAMETERS as SIM_PARAMETERS
+from ..nodes.sim_cell import PARAMETERS as SIM_PARAMETERS
 from ..bags import bag_info
 from .config_files import add_control_law_option
 from .graph import Graph, free_port

@@ -239,7 +239,7 @@ class FaultRun:
         FAULT), and an idle socket is closed within the HELLO deadline."""
         import socket as sockets
 
-        from ..core import motoplus_protocol as mp
+        from ..core.wire import motoplus_protocol as mp
 
         problems = []
         port = self.exp.robot_port

@@ -21,14 +21,14 @@ from typing import Callable
 import numpy as np
 import yaml
 
-from ..core import motoplus_protocol as mp
-from ..core.gauge import Gauge, GaugeError
-from ..core.pose_cdr import (CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr, decode_twist_cdr,
-                             encode_twist_cdr)
-from ..core.profile_cdr import decode_profile_cdr
-from ..core.profile_cloud import Field, ProfileFormatError, decode_profile, encode_profile
-from ..core.profiler_protocol import FrameDecoder, ProfilerProtocolError, encode_frame
-from ..core.trigger_protocol import TriggerLineError, format_trigger, parse_line
+from ..core.wire import motoplus_protocol as mp
+from ..core.model.gauge import Gauge, GaugeError
+from ..core.wire.pose_cdr import (CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr, decode_twist_cdr,
+                                  encode_twist_cdr)
+from ..core.wire.profile_cdr import decode_profile_cdr
+from ..core.wire.profile_cloud import Field, ProfileFormatError, decode_profile, encode_profile
+from ..core.wire.profiler_protocol import FrameDecoder, ProfilerProtocolError, encode_frame
+from ..core.wire.trigger_protocol import TriggerLineError, format_trigger, parse_line
 from ..resources import DEFAULT_GAUGE, config_path
 from . import c_codec, node_fuzz
 from .c_codec import same_outcome
@@ -145,7 +145,7 @@ def _gauge_yaml(data: bytes) -> None:
 
 def _parameter_updates(data: bytes) -> None:
     """Parameter values as a node's set-parameters callback would get them: numbers of any size."""
-    from ..core.compensator import Gains
+    from ..core.control.compensator import Gains
 
     values = np.frombuffer(data[: len(data) // 8 * 8], dtype="<f8")
     chunks = [tuple(float(v) for v in values[i:i + 6]) for i in range(0, len(values), 6)] or [()]

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.gauge import Gauge, GaugeError
-from ..core.gauge_check import (RequiredMotion, check_rules, motion_poses, occlusion_beta_deg, precision_over,
-                                range_of_motion, worst_bound)
-from ..core.gauge_design import RandomGaugeRules
+from ..core.model.gauge import Gauge, GaugeError
+from ..core.design.gauge_check import (RequiredMotion, check_rules, motion_poses, occlusion_beta_deg, precision_over,
+                                       range_of_motion, worst_bound)
+from ..core.design.gauge_design import RandomGaugeRules
 from ..resources import DEFAULT_GAUGE, config_path
 from .report import run_dir, table, write_json
 
@@ -154,7 +154,7 @@ def plot_precision(bounds, carlo: dict, path: Path, name: str, noise_um: float) 
 
 
 def design(args) -> int:
-    from ..core.gauge_search import DesignSpace, design_gauge
+    from ..core.design.gauge_search import DesignSpace, design_gauge
 
     reference = load(args.reference)
     rules, motion, noise = rules_from(args), motion_from(args), args.noise * 1e-6
@@ -205,7 +205,7 @@ def design(args) -> int:
 
 
 def export(args) -> int:
-    from ..core.gauge_mesh import export_stl
+    from ..core.model.gauge_mesh import export_stl
 
     gauge = load(args.gauge)
     out = args.out or str(Path(args.gauge).with_suffix(".stl"))

@@ -16,7 +16,7 @@ from ..resources import PACKAGE, ament_prefix
 from . import processes
 
 MODULES = {
-    "sim_cell": "profile_pose_ros.sim.sim_cell",
+    "sim_cell": "profile_pose_ros.nodes.sim_cell",
     "profiler_driver": "profile_pose_ros.nodes.profiler_driver",
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator",
     "pd_compensator": "profile_pose_ros.nodes.pd_compensator",
@@ -82,9 +82,9 @@ def prepare_kernel() -> None:
     time, that takes a minute or more, and a node compiling at start-up would look to the tool like a
     graph that never sends poses."""
     global _build_failed
-    from ..core import aot, fast_wrapper
+    from ..core.compiled import aot, loader
 
-    if _build_failed or not fast_wrapper.will_compile():
+    if _build_failed or not loader.will_compile():
         return
     print("[setup] compiling the estimator for this machine (once, about a minute)", flush=True)
     started = time.monotonic()

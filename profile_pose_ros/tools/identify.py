@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..core.mode_identification import ModeFit, combine, fit_step, step_response
+from ..core.control.mode_identification import ModeFit, combine, fit_step, step_response
 from .report import run_dir, table, write_json
 
 AXES = ("x", "y", "z")

@@ -8,7 +8,7 @@ transfer, driver), -> pose published, -> correction published, -> increment sent
 At 1 kHz the profiler has its own trigger clock beside the 250 Hz controller, as a fast profiler would.
 
 Two observers. `nodes` (the default): each node times its own stage (stamp -> publish, or -> TCP send)
-and reports per diagnostics window (core/latency_window.py); this client takes nothing at the loop's
+and reports per diagnostics window (core/timing/latency_window.py); this client takes nothing at the loop's
 rate, so it measures the graph without loading it. The p99 is then the worst window's, an upper bound
 of the run's p99. `dds`: this client subscribes to every stage and takes DDS's publish times, an
 outside view that costs the graph about a third of a core at 1 kHz.
@@ -21,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..core.latency_window import pooled
+from ..core.timing.latency_window import pooled
 from .config_files import CELL_CONTROL_LAW, add_control_law_option
 from .experiment import Experiment
 from .graph import Graph, cpu_percent

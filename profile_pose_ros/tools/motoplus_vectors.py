@@ -17,7 +17,7 @@ import struct
 import sys
 import zlib
 
-from ..core import motoplus_protocol as mp
+from ..core.wire import motoplus_protocol as mp
 
 I32_MIN, I32_MAX, U32_MAX = -2 ** 31, 2 ** 31 - 1, 2 ** 32 - 1
 _KINDS = {mp.Hello: mp.HELLO, mp.Correction: mp.CORRECTION, mp.State: mp.STATE, mp.Heartbeat: mp.HEARTBEAT,

@@ -28,7 +28,7 @@ import time
 import numpy as np
 
 from ..core import Gauge, render_profile, sample_pose
-from ..core.sequence_gaps import SequenceGaps
+from ..core.timing.sequence_gaps import SequenceGaps
 from ..resources import DEFAULT_GAUGE, config_path
 from . import processes
 from .node_process import NodeProcess

@@ -24,9 +24,9 @@ import time
 
 import numpy as np
 
-from ..core.motoplus_protocol import metres_to_units
-from ..core.pose_cdr import decode_twist_cdr, encode_pose_with_covariance_cdr, encode_twist_cdr
-from ..core.rotation import quaternion_xyzw, so3_exp
+from ..core.wire.motoplus_protocol import metres_to_units
+from ..core.wire.pose_cdr import decode_twist_cdr, encode_pose_with_covariance_cdr, encode_twist_cdr
+from ..core.model.rotation import quaternion_xyzw, so3_exp
 
 NOMINAL = np.array([0.01, -0.02, 0.40])
 # (age of the stamp in seconds, as the case's first byte picks it; None: stamped 0, 1970)

@@ -15,7 +15,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
-from ..core.pose_cdr import encode_pose_cdr
+from ..core.wire.pose_cdr import encode_pose_cdr
 from ..nodes.fast_input import FastInput, ServedDirectly, spin
 from ..nodes.local_topics import profile_input_qos
 from ..nodes.messages import cdr_stamp_ns

@@ -33,7 +33,7 @@ def _value(value) -> str:
 def node_modules() -> list:
     """Every node's module (NODE_NAME, PARAMETERS), in the order of the graph."""
     from ..nodes import bag_player, bag_recorder, motoplus_bridge, pd_compensator, pose_estimator, profiler_driver
-    from ..sim import sim_cell
+    from ..nodes import sim_cell
 
     return [profiler_driver, pose_estimator, pd_compensator, motoplus_bridge, bag_recorder, bag_player, sim_cell]
 

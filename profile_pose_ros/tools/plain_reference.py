@@ -10,11 +10,11 @@ import numpy as np
 from scipy.linalg import cholesky, solve_triangular
 from scipy.optimize import least_squares
 
-from ..core.corners import detect_corners
-from ..core.estimator import EstimatorOptions
-from ..core.gauge import Gauge
-from ..core.rotation import quaternion_xyzw, rotation_from_quaternion_xyzw
-from ..core.solver import closed_form, corner_residuals, residual_covariance
+from ..core.estimation.corners import detect_corners
+from ..core.estimation.result import EstimatorOptions
+from ..core.model.gauge import Gauge
+from ..core.model.rotation import quaternion_xyzw, rotation_from_quaternion_xyzw
+from ..core.estimation.solver import closed_form, corner_residuals, residual_covariance
 
 
 def estimate_reference(points: np.ndarray, gauge: Gauge, options: EstimatorOptions = EstimatorOptions()):

@@ -22,12 +22,12 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from ..core import estimate_pose, pose_error, render_profile, sample_pose
-from ..core.crlb import corner_crlb, dense_crlb, position_rotation_rms
-from ..core.estimator import is_wrong_minimum, pose_nees
-from ..core.fast_wrapper import COMPILED
-from ..core.gauge_design import random_gauge
-from ..core.render_fast import trace_depth_fast
-from ..core.solver import paper_closed_form
+from ..core.design.crlb import corner_crlb, dense_crlb, position_rotation_rms
+from ..core.estimation.estimator import is_wrong_minimum, pose_nees
+from ..core.estimation.compiled_path import COMPILED
+from ..core.design.gauge_design import random_gauge
+from ..core.compiled.render_kernel import trace_depth_fast
+from ..core.estimation.solver import paper_closed_form
 from .report import run_dir, summary, table, write_json
 
 TABLE_NOISE = 5e-6
@@ -113,7 +113,7 @@ EXTRA = ["wrong_min", "wrong_min_no_search", "searched", "spiky_pos", "spiky_pos
 def dense_trial(task: tuple) -> np.ndarray:
     """The shipped gauge at TABLE_NOISE: [corner pos, corner rot, dense pos, dense rot, both bounds] per pose."""
     seed, poses = task
-    from ..core.gauge import Gauge
+    from ..core.model.gauge import Gauge
     from ..resources import DEFAULT_GAUGE, config_path
 
     gauge = Gauge.from_yaml(config_path(DEFAULT_GAUGE))

@@ -1,0 +1,35 @@
+"""Status codes, the option-vector layout and the refinement's stopping rules, shared by the compiled
+estimator, its wrapper and the numpy reference.
+
+Kept apart from the kernels so that code using a prebuilt kernel never imports numba.
+"""
+
+# status codes (the Python wrapper turns them into reasons)
+OK = 0
+TOO_FEW_POINTS = 2
+X_NOT_INCREASING = 3
+STEEP_SEGMENT = 4
+WRONG_CORNER_COUNT = 5
+CORNER_NOT_BETWEEN = 6
+CORNERS_NOT_INCREASING = 7
+CF_RANK = 8
+CF_DEGENERATE = 9
+NOT_FINITE = 11
+REPROJECTION = 12
+OUTSIDE_FOOTPRINT = 13
+SINGULAR = 14
+
+# decode_xz statuses (its count says how many points)
+DECODED, OFF_PLANE, INFINITE, ALL_INVALID = 0, 1, 2, 3
+
+# option vector layout
+O_EPS, O_TRIM, O_MINSEG, O_MINANGLE, O_MAXFACE, O_MAXOFF, O_ROBUST, O_THR, O_FLOOR, O_NOISE, O_SIGFLOOR, \
+    O_WEIGHTED, O_REFINE, O_MAXIT, O_MAXREPROJ, O_MARGIN, O_PASSES = range(17)
+N_OPTIONS = 17
+
+JIT = dict(cache=True, error_model="numpy", nogil=True)  # numba.njit options of every compiled function
+
+# the refinement's final Gauss-Newton polish (both implementations stop by the same rules)
+POLISH_STEPS = 4
+POLISH_COST_TOLERANCE = 1e-9
+POLISH_STEP_TOLERANCE = 1e-12  # m or rad: the next Gauss-Newton step would be far below this

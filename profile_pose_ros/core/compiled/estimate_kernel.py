@@ -1,0 +1,926 @@
+"""The estimator compiled with numba: the runtime path of estimate_pose.
+
+Step for step the same algorithm as the readable numpy modules (rdp.py, corners.py, solver.py,
+estimator.py), which remain the reference: tests require both to agree within 1e-12 m. One call does
+detection, closed form, refinement and checks, so a profile costs one dispatch from Python. Everything
+is compiled ahead of the first profile (`warm_up`), and cached on disk where the package is writable.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..model.sym3 import largest_eigenvalue
+from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, NOT_FINITE, O_EPS,
+                    O_FLOOR, O_MARGIN, O_MAXFACE, O_MAXIT, O_MAXOFF, O_MAXREPROJ, O_MINANGLE, O_MINSEG,
+                    O_NOISE, O_PASSES, O_REFINE, O_ROBUST, O_SIGFLOOR, O_THR, O_TRIM, O_WEIGHTED, OK,
+                    OUTSIDE_FOOTPRINT, REPROJECTION, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS,
+                    WRONG_CORNER_COUNT, X_NOT_INCREASING, JIT, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE,
+                    POLISH_STEPS)
+
+# ----------------------------------------------------------------------------- corner detection
+@njit(**JIT)
+def _first_argmax(values):
+    """The first index of max(values), for values >= 0 (no NaN), in two passes that beat one
+    compare-and-keep-index pass: the maximum of the bit patterns (non-negative doubles order as their
+    int64 bits, and an integer max vectorises), then the first index holding it."""
+    bits = values.view(np.int64)
+    top = np.int64(0)
+    for i in range(bits.shape[0]):
+        top = max(top, bits[i])
+    for i in range(bits.shape[0]):
+        if bits[i] == top:
+            return i
+    return -1  # empty
+
+
+@njit(**JIT)
+def _rdp(px, pz, epsilon, keep, stack, scratch):
+    n = px.shape[0]
+    keep[:n] = False
+    keep[0] = True
+    keep[n - 1] = True
+    stack[0] = 0
+    stack[1] = n - 1
+    top = 1
+    while top > 0:
+        top -= 1
+        first = stack[2 * top]
+        last = stack[2 * top + 1]
+        if last - first < 2:
+            continue
+        ax = px[first]
+        az = pz[first]
+        c0 = px[last] - ax
+        c1 = pz[last] - az
+        length = math.hypot(c0, c1)
+        # argmax of |cross| is argmax of the distance (length is constant): no division per point
+        best = -1.0
+        split = -1
+        # Loops over views from 0, not range(first + 1, last): an index numba cannot prove non-negative
+        # gets a wraparound check that stops LLVM vectorising (3x slower here).
+        x = px[first + 1:last]
+        z = pz[first + 1:last]
+        if length > 0:
+            distance = scratch[:last - first - 1]  # |cross|: one vectorised pass
+            for i in range(x.shape[0]):
+                distance[i] = abs(c0 * (z[i] - az) - c1 * (x[i] - ax))
+            split = _first_argmax(distance)
+            best = distance[split] / length
+        else:
+            for i in range(x.shape[0]):
+                d = math.hypot(x[i] - ax, z[i] - az)
+                if d > best:
+                    best = d
+                    split = i
+        split += first + 1
+        if best > epsilon:
+            keep[split] = True
+            stack[2 * top] = first
+            stack[2 * top + 1] = split
+            stack[2 * top + 2] = split
+            stack[2 * top + 3] = last
+            top += 2
+
+
+@njit(**JIT)
+def _lane_dot(a, b):
+    """sum(a * b) with four accumulators: one accumulator waits on the add's latency at every element."""
+    m = a.shape[0]
+    s0 = s1 = s2 = s3 = 0.0
+    i = 0
+    while i + 4 <= m:
+        s0 += a[i] * b[i]
+        s1 += a[i + 1] * b[i + 1]
+        s2 += a[i + 2] * b[i + 2]
+        s3 += a[i + 3] * b[i + 3]
+        i += 4
+    for j in range(i, m):
+        s0 += a[j] * b[j]
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit(**JIT)
+def _lane_sums(a, b):
+    """(sum(a), sum(b)) in one pass, four accumulators each (see _lane_dot)."""
+    m = a.shape[0]
+    a0 = a1 = a2 = a3 = 0.0
+    b0 = b1 = b2 = b3 = 0.0
+    i = 0
+    while i + 4 <= m:
+        a0 += a[i]
+        a1 += a[i + 1]
+        a2 += a[i + 2]
+        a3 += a[i + 3]
+        b0 += b[i]
+        b1 += b[i + 1]
+        b2 += b[i + 2]
+        b3 += b[i + 3]
+        i += 4
+    for j in range(i, m):
+        a0 += a[j]
+        b0 += b[j]
+    return (a0 + a1) + (a2 + a3), (b0 + b1) + (b2 + b3)
+
+
+@njit(**JIT)
+def _fit_line(px, pz, first, last, opt, out, k, work, index_work):
+    """Fill out[k] = (first, last, slope, x_mean, z_mean, sxx, n_used, sigma, x_min, x_max).
+
+    corners.fit_line's steps. The rejected points are few, so the sums run over every point (vectorised
+    passes, four accumulators) and the rejected points' terms are then taken off. work ((3, >= m) float)
+    and index_work ((2, >= m) int64) are scratch, allocated once per profile by the caller."""
+    count = last - first + 1
+    trim = int(opt[O_TRIM] * count)
+    lo = first + trim
+    hi = last - trim + 1
+    if hi - lo < 2:
+        lo = first
+        hi = last + 1
+    m = hi - lo
+    x = px[lo:hi]
+    z = pz[lo:hi]
+    dev = work[0, :m]  # x - x_mean
+    res = work[1, :m]  # z - z_mean, then |residual|
+    rejected = index_work[0, :m]  # indices into x, ascending
+    new_rejected = index_work[1, :m]
+    n_rejected = 0
+    sum_x, sum_z = _lane_sums(x, z)
+    slope = 0.0
+    x_mean = 0.0
+    z_mean = 0.0
+    sxx = 0.0
+    n_used = 0
+    passes = int(opt[O_PASSES]) if opt[O_ROBUST] > 0 else 1
+    for iteration in range(passes):
+        cnt = m - n_rejected
+        sx = sum_x
+        sz = sum_z
+        for j in range(n_rejected):
+            sx -= x[rejected[j]]
+            sz -= z[rejected[j]]
+        xm = sx / cnt
+        zm = sz / cnt
+        for i in range(m):
+            dev[i] = x[i] - xm
+            res[i] = z[i] - zm
+        s = _lane_dot(dev, dev)
+        sxz = _lane_dot(dev, res)
+        for j in range(n_rejected):
+            d = dev[rejected[j]]
+            s -= d * d
+            sxz -= d * res[rejected[j]]
+        if s <= 0:
+            break
+        sl = sxz / s
+        slope, x_mean, z_mean, sxx, n_used = sl, xm, zm, s, cnt
+        if iteration == passes - 1:
+            break
+        for i in range(m):
+            res[i] = abs(z[i] - (slope * dev[i] + z_mean))
+        largest = res[_first_argmax(res)]
+        # The rule keeps |r| <= max(thr * 1.4826 * median, floor). If that bound provably exceeds the
+        # largest residual, every point is kept and the median need not be computed: median >= c holds
+        # when fewer than half of the kept |r| are below c (exact, O(n)); rounding is monotonic.
+        c = largest / (opt[O_THR] * 1.4826)
+        all_kept = max(opt[O_THR] * (1.4826 * c), opt[O_FLOOR]) >= largest
+        if all_kept and opt[O_FLOOR] < largest:
+            below = 0
+            for i in range(m):
+                below += res[i] < c
+            for j in range(n_rejected):
+                below -= res[rejected[j]] < c
+            all_kept = below <= (cnt - 1) // 2
+        if all_kept:
+            limit = np.inf
+        else:
+            kept = work[2, :cnt]
+            at = 0
+            j = 0
+            for i in range(m):
+                if j < n_rejected and rejected[j] == i:
+                    j += 1
+                else:
+                    kept[at] = res[i]
+                    at += 1
+            limit = max(opt[O_THR] * (1.4826 * np.median(kept)), opt[O_FLOOR])
+        n_new = 0
+        for i in range(m):
+            if not res[i] <= limit:
+                new_rejected[n_new] = i
+                n_new += 1
+        same = n_new == n_rejected
+        if same:
+            for j in range(n_new):
+                if new_rejected[j] != rejected[j]:
+                    same = False
+                    break
+        if same or m - n_new < 2:
+            break
+        rejected, new_rejected = new_rejected, rejected
+        n_rejected = n_new
+    sigma = 0.0
+    if n_used > 2:
+        for i in range(m):
+            res[i] = z[i] - (slope * (x[i] - x_mean) + z_mean)
+        ss = _lane_dot(res, res)
+        for j in range(n_rejected):
+            ss -= res[rejected[j]] * res[rejected[j]]
+        sigma = math.sqrt(max(ss, 0.0) / (n_used - 2))
+    out[k, 0] = first
+    out[k, 1] = last
+    out[k, 2] = slope
+    out[k, 3] = x_mean
+    out[k, 4] = z_mean
+    out[k, 5] = sxx
+    out[k, 6] = n_used
+    out[k, 7] = sigma
+    out[k, 8] = px[first]
+    out[k, 9] = px[last]
+
+
+@njit(**JIT)
+def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
+    """Corner detection; returns (status, n_lines, fit_rms). info carries numbers for the reason; lines_out
+    ((n_corners + 1, 10), rows as _fit_line's) gets the face fits when it succeeds."""
+    n_all = points.shape[0]
+    px = np.empty(n_all)
+    pz = np.empty(n_all)
+    n = 0
+    for i in range(n_all):
+        if math.isfinite(points[i, 0]) and math.isfinite(points[i, 1]):
+            px[n] = points[i, 0]
+            pz[n] = points[i, 1]
+            n += 1
+    px = px[:n]
+    pz = pz[:n]
+    min_seg = int(opt[O_MINSEG])
+    needed = (n_corners + 1) * min_seg
+    if n < needed:
+        info[0] = n
+        info[1] = needed
+        return TOO_FEW_POINTS, 0, np.nan
+    for i in range(n - 1):
+        if px[i + 1] - px[i] <= 0:
+            return X_NOT_INCREASING, 0, np.nan
+    keep = np.empty(n, dtype=np.bool_)
+    stack = np.empty(2 * n + 4, dtype=np.int64)
+    _rdp(px, pz, opt[O_EPS], keep, stack, np.empty(n))
+    n_vertices = 0
+    for i in range(n):
+        if keep[i]:
+            n_vertices += 1
+    lines = np.empty((max(n_vertices - 1, 1), 10))
+    work = np.empty((3, n))
+    index_work = np.empty((2, n), dtype=np.int64)
+    count = 0
+    prev = -1
+    for i in range(n):
+        if keep[i]:
+            if prev >= 0 and i - prev + 1 >= min_seg:
+                _fit_line(px, pz, prev, i, opt, lines, count, work, index_work)
+                count += 1
+            prev = i
+    # merge nearly collinear neighbours, closest pair first
+    while count > 1:
+        best = np.inf
+        j = -1
+        for k in range(count - 1):
+            a = lines[k, 2]
+            b = lines[k + 1, 2]
+            gap = abs(math.atan((a - b) / (1.0 + a * b)))
+            if gap < best:
+                best = gap
+                j = k
+        if not best < opt[O_MINANGLE]:
+            break
+        _fit_line(px, pz, int(lines[j, 0]), int(lines[j + 1, 1]), opt, lines, j, work, index_work)
+        for k in range(j + 1, count - 1):
+            lines[k, :] = lines[k + 1, :]
+        count -= 1
+    start = 0
+    while start < count and abs(math.atan(lines[start, 2])) > opt[O_MAXFACE]:
+        start += 1
+    stop = count
+    while stop > start and abs(math.atan(lines[stop - 1, 2])) > opt[O_MAXFACE]:
+        stop -= 1
+    for k in range(start, stop):
+        if abs(math.atan(lines[k, 2])) > opt[O_MAXFACE]:
+            info[0] = k - start
+            info[1] = lines[k, 3]
+            return STEEP_SEGMENT, 0, np.nan
+    n_lines = stop - start
+    if n_lines != n_corners + 1:
+        info[0] = max(n_lines - 1, 0)
+        info[1] = n_lines
+        return WRONG_CORNER_COUNT, 0, np.nan
+    jac[:, :] = 0.0
+    for i in range(n_corners):
+        a = lines[start + i]
+        b = lines[start + i + 1]
+        dm = a[2] - b[2]
+        ba = a[4] - a[2] * a[3]
+        bb = b[4] - b[2] * b[3]
+        x = (bb - ba) / dm
+        z = a[2] * (x - a[3]) + a[4]
+        corners[i, 0] = x
+        corners[i, 1] = z
+        d0 = (a[3] - x) / dm
+        d1 = -1.0 / dm
+        d2 = (x - b[3]) / dm
+        d3 = 1.0 / dm
+        jac[2 * i, 2 * i] = d0
+        jac[2 * i, 2 * i + 1] = d1
+        jac[2 * i, 2 * i + 2] = d2
+        jac[2 * i, 2 * i + 3] = d3
+        jac[2 * i + 1, 2 * i] = a[2] * d0 + (x - a[3])
+        jac[2 * i + 1, 2 * i + 1] = a[2] * d1 + 1.0
+        jac[2 * i + 1, 2 * i + 2] = a[2] * d2
+        jac[2 * i + 1, 2 * i + 3] = a[2] * d3
+        low = a[9] - opt[O_MAXOFF]
+        high = b[8] + opt[O_MAXOFF]
+        if not (low <= x <= high) or not (math.isfinite(x) and math.isfinite(z)):
+            info[0] = i
+            info[1] = x
+            info[2] = a[9]
+            info[3] = b[8]
+            return CORNER_NOT_BETWEEN, 0, np.nan
+    for i in range(n_corners - 1):
+        if corners[i + 1, 0] - corners[i, 0] <= 0:
+            return CORNERS_NOT_INCREASING, 0, np.nan
+    used = 0.0
+    ss = 0.0
+    for k in range(n_lines):
+        line = lines[start + k]
+        sigma = opt[O_NOISE] if opt[O_NOISE] > 0 else max(line[7], opt[O_SIGFLOOR])
+        line_var[2 * k] = sigma * sigma / line[5]
+        line_var[2 * k + 1] = sigma * sigma / line[6]
+        used += line[6] - 2
+        ss += line[7] * line[7] * (line[6] - 2)
+        lines_out[k, :] = line
+    return OK, n_lines, math.sqrt(ss / max(1.0, used))
+
+
+# ----------------------------------------------------------------------------- pose
+@njit(**JIT)
+def _residuals(q, u, w, corners, rot, t, r):
+    for i in range(corners.shape[0]):
+        px = corners[i, 0]
+        pz = corners[i, 1]
+        mx = px * rot[0, 0] + pz * rot[0, 2] + t[0]
+        my = px * rot[1, 0] + pz * rot[1, 2] + t[1]
+        mz = px * rot[2, 0] + pz * rot[2, 2] + t[2]
+        r[2 * i] = mx - u[i] * my - q[i, 0]
+        r[2 * i + 1] = mz - w[i] * my - q[i, 2]
+
+
+@njit(**JIT)
+def _jacobian(u, w, corners, rot, jac):
+    """d r / d [delta, t] for R <- R exp([delta]x): rows C_i [-R [p]x, I]."""
+    for i in range(corners.shape[0]):
+        px = corners[i, 0]
+        pz = corners[i, 1]
+        # R [p]x with p = (px, 0, pz): columns = R @ [[0,-pz,0],[pz,0,-px],[0,px,0]]
+        for row in range(3):
+            m0 = rot[row, 1] * pz
+            m1 = -rot[row, 0] * pz + rot[row, 2] * px
+            m2 = -rot[row, 1] * px
+            if row == 0:
+                a0, a1, a2 = m0, m1, m2
+            elif row == 1:
+                b0, b1, b2 = m0, m1, m2
+            else:
+                c0, c1, c2 = m0, m1, m2
+        jac[2 * i, 0] = -(a0 - u[i] * b0)
+        jac[2 * i, 1] = -(a1 - u[i] * b1)
+        jac[2 * i, 2] = -(a2 - u[i] * b2)
+        jac[2 * i + 1, 0] = -(c0 - w[i] * b0)
+        jac[2 * i + 1, 1] = -(c1 - w[i] * b1)
+        jac[2 * i + 1, 2] = -(c2 - w[i] * b2)
+        jac[2 * i, 3] = 1.0
+        jac[2 * i, 4] = -u[i]
+        jac[2 * i, 5] = 0.0
+        jac[2 * i + 1, 3] = 0.0
+        jac[2 * i + 1, 4] = -w[i]
+        jac[2 * i + 1, 5] = 1.0
+
+
+@njit(**JIT)
+def _residual_covariance(u, w, rot, corner_cov, out):
+    """out = M C M^T with M block-diagonal, M_i = C_i R[:, (0, 2)] (see solver.residual_covariance)."""
+    n = u.shape[0]
+    m = np.empty((n, 2, 2))
+    for i in range(n):
+        for col in range(2):
+            c = 0 if col == 0 else 2
+            m[i, 0, col] = rot[0, c] - u[i] * rot[1, c]
+            m[i, 1, col] = rot[2, c] - w[i] * rot[1, c]
+    for i in range(n):
+        for j in range(n):
+            for a in range(2):
+                for b in range(2):
+                    acc = 0.0
+                    for c in range(2):
+                        for d in range(2):
+                            acc += m[i, a, c] * corner_cov[2 * i + c, 2 * j + d] * m[j, b, d]
+                    out[2 * i + a, 2 * j + b] = acc
+
+
+@njit(**JIT)
+def _cholesky(a, low):
+    """low = L with a = L L^T; False if a is not positive definite."""
+    n = a.shape[0]
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= low[j, k] * low[j, k]
+        if not s > 0:
+            return False
+        low[j, j] = math.sqrt(s)
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s -= low[i, k] * low[j, k]
+            low[i, j] = s / low[j, j]
+        for i in range(j):
+            low[i, j] = 0.0
+    return True
+
+
+@njit(**JIT)
+def _cholesky_solve(low, b, x):
+    n = b.shape[0]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= low[i, k] * x[k]
+        x[i] = s / low[i, i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= low[k, i] * x[k]
+        x[i] = s / low[i, i]
+
+
+@njit(**JIT)
+def _spd_inverse(a, out):
+    """out = a^-1 for a symmetric positive definite a, as L^-T L^-1 from its Cholesky factor (half the
+    work of n triangular solves); False if a is not positive definite."""
+    n = a.shape[0]
+    low = np.empty((n, n))
+    if not _cholesky(a, low):
+        return False
+    inv = np.zeros((n, n))  # L^-1, lower triangular
+    for j in range(n):
+        inv[j, j] = 1.0 / low[j, j]
+        for i in range(j + 1, n):
+            s = 0.0
+            for k in range(j, i):
+                s -= low[i, k] * inv[k, j]
+            inv[i, j] = s / low[i, i]
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(i, n):  # (L^-T L^-1)[i, j] = sum_k inv[k, i] inv[k, j], k >= max(i, j)
+                s += inv[k, i] * inv[k, j]
+            out[i, j] = s
+            out[j, i] = s
+    return True
+
+
+@njit(**JIT)
+def _normal_equations(jac, weight, r, jw, hessian, gradient):
+    n2 = jac.shape[0]
+    for a in range(6):
+        for j in range(n2):
+            acc = 0.0
+            for i in range(n2):
+                acc += jac[i, a] * weight[i, j]
+            jw[a, j] = acc
+    for a in range(6):
+        for b in range(6):
+            acc = 0.0
+            for j in range(n2):
+                acc += jw[a, j] * jac[j, b]
+            hessian[a, b] = acc
+        acc = 0.0
+        for j in range(n2):
+            acc += jw[a, j] * r[j]
+        gradient[a] = acc
+
+
+@njit(**JIT)
+def _matmul(a, b, out, transpose_b):
+    """out = a @ b (or a @ b.T) for the small matrices here, without a BLAS call's overhead."""
+    rows, inner = a.shape
+    cols = b.shape[0] if transpose_b else b.shape[1]
+    for i in range(rows):
+        for j in range(cols):
+            acc = 0.0
+            for k in range(inner):
+                acc += a[i, k] * (b[j, k] if transpose_b else b[k, j])
+            out[i, j] = acc
+
+
+@njit(**JIT)
+def _matmul3(a, b, out):
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+
+
+@njit(**JIT)
+def _so3_exp(v, out):
+    """Rodrigues: I + a K + b K^2 with K = [v]x, written out (no temporaries: it runs every iteration)."""
+    x, y, z = v[0], v[1], v[2]
+    theta2 = x * x + y * y + z * z
+    if theta2 < 1e-16:
+        a, b = 1.0, 0.5
+    else:
+        theta = math.sqrt(theta2)
+        a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta2
+    # K^2 = v v^T - theta2 I
+    out[0, 0] = 1.0 + b * (x * x - theta2)
+    out[1, 1] = 1.0 + b * (y * y - theta2)
+    out[2, 2] = 1.0 + b * (z * z - theta2)
+    out[0, 1] = -a * z + b * x * y
+    out[1, 0] = a * z + b * x * y
+    out[0, 2] = a * y + b * x * z
+    out[2, 0] = -a * y + b * x * z
+    out[1, 2] = -a * x + b * y * z
+    out[2, 1] = a * x + b * y * z
+
+
+@njit(**JIT)
+def _quadratic(r, weight):
+    n = r.shape[0]
+    acc = 0.0
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += weight[i, j] * r[j]
+        acc += r[i] * s
+    return acc
+
+
+@njit(**JIT)
+def _householder_lstsq(a, b, x):
+    """Least-squares solution of a x = b (rows >= columns) by Householder QR; returns the numerical rank."""
+    m, n = a.shape
+    if m < n:
+        return m
+    qa = a.copy()
+    qb = b.copy()
+    for k in range(n):
+        norm = 0.0
+        for i in range(k, m):
+            norm += qa[i, k] * qa[i, k]
+        norm = math.sqrt(norm)
+        if norm == 0.0:
+            continue
+        alpha = -norm if qa[k, k] >= 0 else norm
+        v = qa[k:, k].copy()
+        v[0] -= alpha
+        vnorm2 = 0.0
+        for i in range(m - k):
+            vnorm2 += v[i] * v[i]
+        if vnorm2 == 0.0:
+            continue
+        for j in range(k, n):
+            dot = 0.0
+            for i in range(m - k):
+                dot += v[i] * qa[k + i, j]
+            f = 2.0 * dot / vnorm2
+            for i in range(m - k):
+                qa[k + i, j] -= f * v[i]
+        dot = 0.0
+        for i in range(m - k):
+            dot += v[i] * qb[k + i]
+        f = 2.0 * dot / vnorm2
+        for i in range(m - k):
+            qb[k + i] -= f * v[i]
+    biggest = 0.0
+    for k in range(n):
+        biggest = max(biggest, abs(qa[k, k]))
+    tol = np.finfo(np.float64).eps * max(m, n) * biggest
+    rank = 0
+    for k in range(n):
+        if abs(qa[k, k]) > tol:
+            rank += 1
+    if rank < n:
+        return rank
+    for i in range(n - 1, -1, -1):
+        s = qb[i]
+        for k in range(i + 1, n):
+            s -= qa[i, k] * x[k]
+        x[i] = s / qa[i, i]
+    return rank
+
+
+@njit(**JIT)
+def _polar_rotation(m, out):
+    """out = U V^T of m = U S V^T (the rotation nearest m) by Newton's polar iteration A <- (A + A^-T) / 2,
+    when det(m) > 0 and it converges: the same rotation as the SVD's to rounding, without LAPACK's
+    ~4 us a call for a 3 x 3. False otherwise (a reflection is nearer, or m is near singular): use the SVD."""
+    a = np.empty((3, 3))
+    cof = np.empty((3, 3))
+    a[:, :] = m
+    for _ in range(30):
+        for i in range(3):
+            i1, i2 = (i + 1) % 3, (i + 2) % 3
+            for j in range(3):
+                j1, j2 = (j + 1) % 3, (j + 2) % 3
+                cof[i, j] = a[i1, j1] * a[i2, j2] - a[i1, j2] * a[i2, j1]
+        det = a[0, 0] * cof[0, 0] + a[0, 1] * cof[0, 1] + a[0, 2] * cof[0, 2]
+        if not det > 0.0:
+            return False
+        change = 0.0
+        for i in range(3):
+            for j in range(3):
+                new = 0.5 * (a[i, j] + cof[i, j] / det)  # A^-T = cofactor matrix / det
+                change = max(change, abs(new - a[i, j]))
+                a[i, j] = new
+        if change <= 1e-15:  # quadratic convergence: the previous step was already at rounding level
+            out[:, :] = a
+            return True
+    return False
+
+
+@njit(**JIT)
+def _closed_form(q, u, w, corners, info):
+    """Paper eqs. (9)-(14), the least squares by Householder QR. Returns (status, R, t)."""
+    n = corners.shape[0]
+    a = np.zeros((2 * n, 9))
+    b = np.empty(2 * n)
+    for i in range(n):
+        p0 = corners[i, 0]
+        p1 = corners[i, 1]
+        a[2 * i, 0] = p0
+        a[2 * i, 1] = p1
+        a[2 * i, 2] = 1.0
+        a[2 * i, 3] = -u[i] * p0
+        a[2 * i, 4] = -u[i] * p1
+        a[2 * i, 5] = -u[i]
+        a[2 * i + 1, 3] = -w[i] * p0
+        a[2 * i + 1, 4] = -w[i] * p1
+        a[2 * i + 1, 5] = -w[i]
+        a[2 * i + 1, 6] = p0
+        a[2 * i + 1, 7] = p1
+        a[2 * i + 1, 8] = 1.0
+        b[2 * i] = q[i, 0]
+        b[2 * i + 1] = q[i, 2]
+    x = np.empty(9)
+    rank = _householder_lstsq(a, b, x)
+    rot = np.empty((3, 3))
+    t = np.empty(3)
+    if rank < 9:
+        info[0] = rank
+        return CF_RANK, rot, t
+    r_hat = np.empty((3, 3))
+    for k in range(3):
+        r_hat[k, 0] = x[3 * k]
+        r_hat[k, 2] = x[3 * k + 1]
+        t[k] = x[3 * k + 2]
+    r_hat[0, 1] = r_hat[1, 2] * r_hat[2, 0] - r_hat[2, 2] * r_hat[1, 0]  # r2 = r3 x r1
+    r_hat[1, 1] = r_hat[2, 2] * r_hat[0, 0] - r_hat[0, 2] * r_hat[2, 0]
+    r_hat[2, 1] = r_hat[0, 2] * r_hat[1, 0] - r_hat[1, 2] * r_hat[0, 0]
+    norm_hat = math.sqrt(np.sum(r_hat * r_hat))
+    if not math.isfinite(norm_hat) or norm_hat == 0:
+        return CF_DEGENERATE, rot, t
+    if not _polar_rotation(r_hat, rot):
+        uu, _, vt = np.linalg.svd(r_hat)
+        _matmul3(uu, vt, rot)
+        if np.linalg.det(rot) < 0:
+            for i in range(3):
+                uu[i, 2] = -uu[i, 2]
+            _matmul3(uu, vt, rot)
+    scale = math.sqrt(np.sum(rot * rot)) / norm_hat
+    for k in range(3):
+        t[k] *= scale
+    return OK, rot, t
+
+
+@njit(**JIT)
+def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, cov_out):
+    """Levenberg-Marquardt + Gauss-Newton polish (unless polish is False) on SO(3) x R^3 (see solver.refine).
+
+    Returns (status, R, t, residuals, iterations); cov_out gets the (6, 6) covariance over [delta_F, t].
+    """
+    n2 = 2 * corners.shape[0]
+    rot = rot.copy()  # the current pose, updated in place: the loop allocates nothing
+    t = t.copy()
+    r = np.empty(n2)
+    new_r = np.empty(n2)
+    _residuals(q, u, w, corners, rot, t, r)
+    sigma_r = np.empty((n2, n2))
+    weight = np.eye(n2)
+    _residual_covariance(u, w, rot, corner_cov, sigma_r)
+    if weighted and not _spd_inverse(sigma_r, weight):
+        return SINGULAR, rot, t, r, 0
+    cost = _quadratic(r, weight)
+    damping = 1e-6
+    iterations = 0
+    jac = np.empty((n2, 6))
+    jw = np.empty((6, n2))
+    hessian = np.empty((6, 6))
+    damped = np.empty((6, 6))
+    low = np.empty((6, 6))
+    gradient = np.empty(6)
+    step = np.empty(6)
+    rstep = np.empty((3, 3))
+    new_rot = np.empty((3, 3))
+    new_t = np.empty(3)
+    polishing = False
+    total = max_iterations + (POLISH_STEPS if max_iterations > 0 and polish else 0)
+    it = 0
+    while it < total:
+        it += 1
+        if it > max_iterations:
+            polishing = True
+        _jacobian(u, w, corners, rot, jac)
+        _normal_equations(jac, weight, r, jw, hessian, gradient)
+        damped[:, :] = hessian
+        if not polishing:
+            for k in range(6):
+                damped[k, k] += damping * hessian[k, k]
+        if not _cholesky(damped, low):
+            return SINGULAR, rot, t, r, iterations
+        for k in range(6):
+            gradient[k] = -gradient[k]
+        _cholesky_solve(low, gradient, step)
+        _so3_exp(step[:3], rstep)
+        _matmul3(rot, rstep, new_rot)
+        for k in range(3):
+            new_t[k] = t[k] + step[3 + k]
+        _residuals(q, u, w, corners, new_rot, new_t, new_r)
+        new_cost = _quadratic(new_r, weight)
+        biggest = 0.0
+        for k in range(6):
+            biggest = max(biggest, abs(step[k]))
+        if polishing:
+            if new_cost > cost * (1.0 + POLISH_COST_TOLERANCE):
+                break
+            rot[:, :] = new_rot
+            t[:] = new_t
+            cost = new_cost
+            r[:] = new_r
+            if biggest < POLISH_STEP_TOLERANCE:
+                break
+            continue
+        iterations = it
+        if new_cost <= cost:
+            converged = cost - new_cost <= POLISH_COST_TOLERANCE * cost
+            rot[:, :] = new_rot
+            t[:] = new_t
+            cost = new_cost
+            r[:] = new_r
+            damping = max(damping / 10.0, 1e-12)
+            if converged or biggest < 1e-13:
+                it = max_iterations  # go on with the polish
+        else:
+            damping *= 10.0
+            if damping > 1e8 or new_cost - cost <= POLISH_COST_TOLERANCE * cost:
+                it = max_iterations
+    _jacobian(u, w, corners, rot, jac)
+    _residual_covariance(u, w, rot, corner_cov, sigma_r)
+    if weighted and not _spd_inverse(sigma_r, weight):
+        return SINGULAR, rot, t, r, iterations
+    _normal_equations(jac, weight, r, jw, hessian, gradient)
+    bread = np.empty((6, 6))
+    if not _spd_inverse(hessian, bread):
+        return SINGULAR, rot, t, r, iterations
+    js = np.empty((6, n2))
+    _matmul(jw, sigma_r, js, False)  # J^T W Sigma_r
+    meat = np.empty((6, 6))
+    _matmul(js, jw, meat, True)  # J^T W Sigma_r W J
+    half = np.empty((6, 6))
+    _matmul(bread, meat, half, False)
+    _matmul(half, bread, cov_out, False)
+    for a in range(6):
+        for b in range(a + 1, 6):
+            mean = 0.5 * (cov_out[a, b] + cov_out[b, a])
+            cov_out[a, b] = mean
+            cov_out[b, a] = mean
+    return OK, rot, t, r, iterations
+
+
+@njit(**JIT)
+def _unstack_residuals(r, out):
+    """(2n,) -> (n, 2) residuals; returns their mean norm (the reprojection error)."""
+    n = out.shape[0]
+    total = 0.0
+    for i in range(n):
+        out[i, 0] = r[2 * i]
+        out[i, 1] = r[2 * i + 1]
+        total += math.hypot(r[2 * i], r[2 * i + 1])
+    return total / n
+
+
+@njit(**JIT)
+def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
+    """corners.detect_corners() compiled (the numpy path's stages and the studies call it per profile)."""
+    return _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out)
+
+
+@njit(**JIT)
+def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, rot_out, t_out, r_out,
+                cov_out):
+    """solver.refine() compiled, for the basin search and the four-ridge starts. Returns (status, iterations);
+    the pose, the stacked residuals and the (6, 6) covariance over [delta_F, t] go to the *_out arrays."""
+    status, rot2, t2, r2, iterations = _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations,
+                                               polish, cov_out)
+    rot_out[:, :] = rot2
+    t_out[:] = t2
+    r_out[:] = r2
+    return status, iterations
+
+
+_largest_eigenvalue = njit(**JIT)(largest_eigenvalue)
+
+
+@njit(**JIT)
+def _position_sigma(cov):
+    """estimator.position_sigma of cov[:3, :3], compiled: every accepted pose is checked against it."""
+    a, b, c, d, e, f = cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 1], cov[1, 2], cov[2, 2]
+    for v in (a, b, c, d, e, f):
+        if not math.isfinite(v):
+            return np.nan
+    return math.sqrt(max(_largest_eigenvalue(a, b, c, d, e, f), 0.0))
+
+
+@njit(**JIT)
+def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
+             info):
+    """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,
+    position_sigma); the last is NaN unless a pose is accepted."""
+    n = u.shape[0]
+    rot_out[:, :] = np.nan  # stays NaN unless a pose is accepted
+    t_out[:] = np.nan
+    cov_out[:, :] = np.nan
+    jac = np.empty((2 * n, 2 * (n + 1)))
+    line_var = np.empty(2 * (n + 1))
+    status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info, np.empty((n + 1, 10)))
+    if status != OK:
+        return status, 0, np.nan, np.nan, np.nan, np.nan
+    status, rot, t = _closed_form(q, u, w, corners, info)
+    if status != OK:
+        return status, 0, fit_rms, np.nan, np.nan, np.nan
+    cf_rot[:, :] = rot
+    cf_t[:] = t
+    r = np.empty(2 * n)
+    _residuals(q, u, w, corners, rot, t, r)
+    cf_err = _unstack_residuals(r, cf_res)
+    corner_cov = np.empty((2 * n, 2 * n))
+    for a in range(2 * n):
+        for b in range(2 * n):
+            acc = 0.0
+            for k in range(2 * n + 2):
+                acc += jac[a, k] * line_var[k] * jac[b, k]
+            corner_cov[a, b] = acc
+    max_it = int(opt[O_MAXIT]) if opt[O_REFINE] > 0 else 0
+    cov = np.empty((6, 6))
+    status, rot2, t2, r2, iterations = _refine(q, u, w, corners, rot, t, corner_cov, opt[O_WEIGHTED] > 0, max_it,
+                                               True, cov)
+    if status != OK:
+        return status, iterations, fit_rms, np.nan, cf_err, np.nan
+    if opt[O_REFINE] > 0:
+        rot, t, r = rot2, t2, r2
+    err = _unstack_residuals(r, res_out)
+    for v in rot.ravel():
+        if not math.isfinite(v):
+            return NOT_FINITE, iterations, fit_rms, err, cf_err, np.nan
+    for v in t:
+        if not math.isfinite(v):
+            return NOT_FINITE, iterations, fit_rms, err, cf_err, np.nan
+    if not err <= opt[O_MAXREPROJ]:
+        return REPROJECTION, iterations, fit_rms, err, cf_err, np.nan
+    half_w = width / 2 + opt[O_MARGIN]
+    half_l = length / 2 + opt[O_MARGIN]
+    for i in range(n):
+        mx = corners[i, 0] * rot[0, 0] + corners[i, 1] * rot[0, 2] + t[0]
+        my = corners[i, 0] * rot[1, 0] + corners[i, 1] * rot[1, 2] + t[1]
+        if abs(mx) > half_w or abs(my) > half_l:
+            info[0] = i
+            info[1] = mx
+            info[2] = my
+            return OUTSIDE_FOOTPRINT, iterations, fit_rms, err, cf_err, np.nan
+    rot_out[:, :] = rot
+    t_out[:] = t
+    # [delta_F, t] -> ROS [t, delta_G = R delta_F]: cov_ros = T cov T^T, T = [[0, I], [R, 0]]
+    rr = np.zeros((6, 6))
+    for k in range(3):
+        rr[k, 3 + k] = 1.0
+        for j in range(3):
+            rr[3 + k, j] = rot[k, j]
+    for a in range(6):
+        for b in range(6):
+            acc = 0.0
+            for i in range(6):
+                if rr[a, i] == 0.0:
+                    continue
+                for j in range(6):
+                    acc += rr[a, i] * cov[i, j] * rr[b, j]
+            cov_out[a, b] = acc
+    return OK, iterations, fit_rms, err, cf_err, _position_sigma(cov_out)

@@ -1,0 +1,102 @@
+"""What the estimator takes and returns: its options, its result, and the words of its refusals.
+
+The bottom of estimation/: the numpy reference (plain.py), the compiled path (compiled_path.py) and the
+front (estimator.py) all build on it, so none of them imports another sideways.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..model.gauge import Gauge
+from ..model.sym3 import largest_eigenvalue
+from .corners import CornerOptions
+from .solver import PoseSolution
+
+WEIGHTINGS = ("corner_covariance", "uniform")
+REFINE_MODELS = ("corners", "dense")
+
+
+@dataclass(frozen=True)
+class EstimatorOptions:
+    corners: CornerOptions = CornerOptions()
+    refine: bool = True
+    weighting: str = "corner_covariance"  # or "uniform": the paper's plain eq. (15)
+    refine_model: str = "corners"  # or "dense": then also fit every point's depth (core/estimation/dense.py)
+    noise_std: float = 0.0  # m; 0 = estimate the depth noise from each face fit
+    max_reprojection_error: float = 1e-4  # m; reject poses whose corners miss their ridges by more
+    footprint_margin: float = 2e-3  # m; mapped corners must lie this close to the gauge's footprint
+    max_iterations: int = 30
+    search: bool = True  # look for a lower minimum around a poorly determined pose (solver.search_minima)
+    search_min_sigma: float = 2.5e-4  # m; search when the refined position's largest std exceeds this
+    # m; reject a pose whose position's largest std exceeds this: the profile determines it so poorly that its
+    # linearised covariance understates the error (docs/estimator.md, "Covariance"), so nothing downstream
+    # could weight it right. The shipped gauges are near 0.02-0.2 mm at 5 um noise.
+    max_position_sigma: float = 5e-4
+
+    def __post_init__(self) -> None:
+        if self.weighting not in WEIGHTINGS:
+            raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
+        if self.refine_model not in REFINE_MODELS:
+            raise ValueError(f"refine_model must be one of {REFINE_MODELS}, got {self.refine_model!r}")
+
+    def with_changes(self, **changes) -> "EstimatorOptions":
+        corner_keys = {k: changes.pop(k) for k in list(changes) if hasattr(CornerOptions, k)}
+        return replace(self, corners=replace(self.corners, **corner_keys), **changes)
+
+
+@dataclass
+class PoseEstimate:
+    """The pose of F in G (p_G = R p_F + t), or ok=False and why."""
+
+    ok: bool
+    reason: str = ""
+    R: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    t: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    corners: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    reprojection_error: float = float("nan")  # m, mean |corner residual| (paper eq. 17 as a length)
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))  # ROS order, see docs
+    closed_form: PoseSolution | None = None
+    refined: bool = False
+    iterations: int = 0
+    fit_rms: float = float("nan")  # m, rms residual of the face line fits
+    timings: dict = field(default_factory=dict)  # seconds per stage
+    search_starts: int = 0  # starting poses tried by the basin search (0: the pose was well determined)
+    position_sigma: float | None = None  # position_sigma(covariance[:3, :3]) when the compiled path computed it
+
+
+def ros_covariance(rotation: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """[delta_F, t] (right perturbation) -> ROS order [t, delta_G] with delta_G = R delta_F."""
+    transform = np.zeros((6, 6))
+    transform[:3, 3:] = np.eye(3)
+    transform[3:, :3] = rotation
+    return transform @ local @ transform.T
+
+
+REASON_NOT_FINITE = "pose is not finite"
+
+
+def reason_reprojection(error: float, gauge: Gauge, options: EstimatorOptions) -> str:
+    return (f"reprojection error {error * 1e6:.1f} um exceeds {options.max_reprojection_error * 1e6:.1f} um "
+            f"(profile does not match gauge '{gauge.name}')")
+
+
+def reason_poorly_determined(sigma: float, options: EstimatorOptions) -> str:
+    return (f"pose poorly determined: position std up to {sigma * 1e3:.2f} mm exceeds "
+            f"{options.max_position_sigma * 1e3:.2f} mm (a near-degenerate view of the gauge)")
+
+
+def reason_outside(i: int, x: float, y: float, gauge: Gauge) -> str:
+    return (f"corner {i} maps to ({x * 1e3:.1f}, {y * 1e3:.1f}) mm, outside gauge "
+            f"'{gauge.name}' ({gauge.width * 1e3:.0f} x {gauge.length * 1e3:.0f} mm)")
+
+
+def position_sigma(position_covariance: np.ndarray) -> float:
+    """Largest standard deviation (m) of a 3x3 position covariance (NaN if it is not finite); every
+    estimate needs it (sym3.py: closed form, no LAPACK)."""
+    (a, b, c), (_, d, e), (_, _, f) = position_covariance.tolist()
+    if not all(map(math.isfinite, (a, b, c, d, e, f))):
+        return float("nan")
+    return math.sqrt(max(largest_eigenvalue(a, b, c, d, e, f), 0.0))

@@ -1,0 +1,327 @@
+"""Pose from corners: the paper's closed form (eqs. 5-14) and its refinement (eq. 15).
+
+The corner residual used throughout is the algebraic residual of eq. (9): for corner p = [px, pz] of
+F mapped into G as P = R [px, 0, pz] + t, the x-z offset between P and ridge i at the same y,
+    r_i = [P_x - u_i P_y - q_ix,  P_z - w_i P_y - q_iz].
+It is a length. Eq. (17) as printed (a difference of unit-y ridge directions) equals r_i / |P_y|, so
+|r_i| is what we report as the paper's reprojection error.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..compiled.codes import POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS
+from ..model.gauge import Gauge
+from ..model.rotation import nearest_rotation, skew, so3_exp
+
+
+@dataclass(frozen=True)
+class PoseSolution:
+    rotation: np.ndarray  # (3, 3), p_G = R p_F + t
+    translation: np.ndarray  # (3,)
+    residuals: np.ndarray  # (n, 2) corner residuals r_i, metres
+
+    @property
+    def reprojection_error(self) -> float:
+        """Mean over corners of |r_i| (m): the paper's eq. (17) metric, as a length."""
+        return float(np.mean(np.hypot(self.residuals[:, 0], self.residuals[:, 1])))
+
+
+class SolverError(ArithmeticError):
+    """The corners do not determine a pose (degenerate geometry)."""
+
+
+REASON_CF_DEGENERATE = "closed form produced a degenerate rotation"
+
+
+def reason_cf_rank(n: int, rank: int) -> str:
+    return f"closed form is underdetermined with {n} corners (rank {rank} < 9)"
+
+
+def corner_residuals(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    mapped = corners[:, :1] * rotation[:, 0] + corners[:, 1:] * rotation[:, 2] + translation
+    return np.column_stack([
+        mapped[:, 0] - gauge.u * mapped[:, 1] - gauge.q[:, 0],
+        mapped[:, 2] - gauge.w * mapped[:, 1] - gauge.q[:, 2],
+    ])
+
+
+def closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
+    """Paper eqs. (9)-(14): solve the stacked 2n x 9 system by SVD, then project onto SE(3)."""
+    a, b = _system(gauge, corners)
+    x, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
+    if rank < 9:
+        raise SolverError(reason_cf_rank(len(corners), rank))
+    return _pose_from_m(gauge, corners, x)
+
+
+def _system(gauge: Gauge, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stacked 2n x 9 system A x = b of eqs. (9)-(10)."""
+    n = len(corners)
+    p = np.column_stack([corners[:, 0], corners[:, 1], np.ones(n)])  # [px, pz, 1]
+    a = np.zeros((2 * n, 9))
+    a[0::2, 0:3] = p
+    a[0::2, 3:6] = -gauge.u[:, None] * p
+    a[1::2, 3:6] = -gauge.w[:, None] * p
+    a[1::2, 6:9] = p
+    b = np.empty(2 * n)
+    b[0::2] = gauge.q[:, 0]
+    b[1::2] = gauge.q[:, 2]
+    return a, b
+
+
+def _pose_from_m(gauge: Gauge, corners: np.ndarray, x: np.ndarray) -> PoseSolution:
+    """Eqs. (12)-(14): rows of M = [r1 r3 t] -> nearest rotation, rescaled translation."""
+    m = x.reshape(3, 3)
+    r1, r3, t_hat = m[:, 0], m[:, 1], m[:, 2]
+    r_hat = np.column_stack([r1, np.cross(r3, r1), r3])
+    norm_hat = np.linalg.norm(r_hat)
+    if not np.isfinite(norm_hat) or norm_hat == 0:
+        raise SolverError(REASON_CF_DEGENERATE)
+    rotation = nearest_rotation(r_hat)
+    translation = np.linalg.norm(rotation) / norm_hat * t_hat
+    return PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation))
+
+
+def paper_closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
+    """Eqs. (9)-(14) exactly as printed, also when the system is rank-deficient (n = 4): the SVD then
+    returns the minimum-norm solution, which is what the paper's Table I reports as failing for n = 4."""
+    a, b = _system(gauge, corners)
+    return _pose_from_m(gauge, corners, np.linalg.lstsq(a, b, rcond=None)[0])
+
+
+def four_ridge_candidates(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
+    """Starting poses for n = 4, where A x = b leaves one free direction: x = x0 + alpha v.
+
+    alpha is fixed by the rotation constraints |r1| = |r3| = 1, r1 . r3 = 0: their squared violation is
+    a quartic in alpha, and every real root of its derivative (a cubic) is a candidate. The caller
+    refines each candidate and keeps the best, so a wrong root cannot win on a clean fit.
+    """
+    a, b = _system(gauge, corners)
+    x0 = np.linalg.lstsq(a, b, rcond=None)[0]
+    v = np.linalg.svd(a)[2][-1]  # the null direction of the rank-8 system
+    i1, i3 = [0, 3, 6], [1, 4, 7]  # r1 and r3 inside x (rows of M)
+
+    def quadratic(ia, ib):  # coefficients of (x0 + alpha v)_a . (x0 + alpha v)_b in alpha
+        return np.array([v[ia] @ v[ib], x0[ia] @ v[ib] + v[ia] @ x0[ib], x0[ia] @ x0[ib]])
+
+    violations = [quadratic(i1, i1) - [0, 0, 1], quadratic(i3, i3) - [0, 0, 1], quadratic(i1, i3)]
+    quartic = sum(np.polymul(c, c) for c in violations)
+    roots = np.roots(np.polyder(quartic))
+    alphas = roots[np.abs(roots.imag) < 1e-9 * (1 + np.abs(roots.real))].real
+    candidates = []
+    for alpha in alphas:
+        try:
+            candidates.append(_pose_from_m(gauge, corners, x0 + alpha * v))
+        except SolverError:
+            continue
+    if not candidates:
+        raise SolverError("no real starting pose for the 4-ridge gauge")
+    return candidates
+
+
+def _ridge_rows(gauge: Gauge) -> np.ndarray:
+    """(n, 2, 3) C_i with r_i = C_i P_i - q_i: the x and z offsets from ridge i at P's y."""
+    n = len(gauge.u)
+    c = np.zeros((n, 2, 3))
+    c[:, 0, 0] = 1.0
+    c[:, 0, 1] = -gauge.u
+    c[:, 1, 1] = -gauge.w
+    c[:, 1, 2] = 1.0
+    return c
+
+
+def residual_jacobian(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """(2n, 6) d r / d [delta, t] for the right perturbation R <- R exp([delta]x)."""
+    n = len(corners)
+    c = _ridge_rows(gauge)
+    skews = skew(np.column_stack([corners[:, 0], np.zeros(n), corners[:, 1]]))  # p = [px, 0, pz]
+    jac = np.empty((n, 2, 6))
+    jac[:, :, :3] = -np.einsum("nij,jk,nkl->nil", c, rotation, skews)
+    jac[:, :, 3:] = c
+    return jac.reshape(2 * n, 6)
+
+
+def residual_covariance(gauge: Gauge, rotation: np.ndarray, corner_covariance: np.ndarray) -> np.ndarray:
+    """Covariance of the stacked residuals induced by the corners' covariance (linear in the corners)."""
+    n = len(gauge.u)
+    blocks = _ridge_rows(gauge) @ rotation[:, [0, 2]]  # (n, 2, 2)
+    mapping = np.zeros((2 * n, 2 * n))
+    for i in range(n):
+        mapping[2 * i:2 * i + 2, 2 * i:2 * i + 2] = blocks[i]
+    return mapping @ corner_covariance @ mapping.T
+
+
+
+
+@dataclass(frozen=True)
+class Refinement:
+    solution: PoseSolution
+    covariance: np.ndarray  # (6, 6) over [delta_F (3), t (3)]
+    iterations: int
+
+
+def refine(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covariance: np.ndarray | None,
+           weighted: bool = True, max_iterations: int = 30, polish: bool = True) -> Refinement:
+    """Levenberg-Marquardt on SO(3) x R^3 minimising the (weighted) corner residuals, eq. (15).
+
+    weighted=True uses the inverse covariance of the residuals (maximum likelihood for the corner
+    noise); weighted=False is the paper's plain sum of squares. The returned covariance is the
+    sandwich form, so it stays honest when the weights are not the inverse covariance.
+    """
+    rotation, translation = start.rotation, start.translation
+    r = corner_residuals(gauge, corners, rotation, translation).ravel()
+    have_cov = corner_covariance is not None and corner_covariance.size
+    weight = np.eye(len(r))
+    if weighted and have_cov:
+        weight = np.linalg.inv(residual_covariance(gauge, rotation, corner_covariance))
+    cost = r @ weight @ r
+    damping = 1e-6
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        jac = residual_jacobian(gauge, corners, rotation)
+        hessian = jac.T @ weight @ jac
+        gradient = jac.T @ weight @ r
+        step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)), -gradient)
+        new_rotation = rotation @ so3_exp(step[:3])
+        new_translation = translation + step[3:]
+        new_r = corner_residuals(gauge, corners, new_rotation, new_translation).ravel()
+        new_cost = new_r @ weight @ new_r
+        if new_cost <= cost:
+            converged = cost - new_cost <= POLISH_COST_TOLERANCE * cost
+            rotation, translation, r, cost = new_rotation, new_translation, new_r, new_cost
+            damping = max(damping / 10.0, 1e-12)
+            if converged or np.max(np.abs(step)) < 1e-13:
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e8 or new_cost - cost <= POLISH_COST_TOLERANCE * cost:
+                break  # at the cost's rounding floor: the polish below finishes the job
+    # Polish: LM's damping leaves the weak direction slightly short, and near the minimum the cost can
+    # no longer tell steps apart (micrometre residuals, weights ~1e12). Undamped Gauss-Newton steps
+    # converge to the minimiser itself, accepted unless they raise the cost beyond rounding.
+    for _ in range(POLISH_STEPS if max_iterations and polish else 0):
+        jac = residual_jacobian(gauge, corners, rotation)
+        step = np.linalg.solve(jac.T @ weight @ jac, -(jac.T @ weight @ r))
+        new_rotation = rotation @ so3_exp(step[:3])
+        new_translation = translation + step[3:]
+        new_r = corner_residuals(gauge, corners, new_rotation, new_translation).ravel()
+        new_cost = new_r @ weight @ new_r
+        if new_cost > cost * (1.0 + POLISH_COST_TOLERANCE):
+            break
+        rotation, translation, r, cost = new_rotation, new_translation, new_r, new_cost
+        if np.max(np.abs(step)) < POLISH_STEP_TOLERANCE:
+            break
+    jac = residual_jacobian(gauge, corners, rotation)
+    if have_cov:
+        sigma_r = residual_covariance(gauge, rotation, corner_covariance)
+        if weighted:
+            weight = np.linalg.inv(sigma_r)
+        bread = np.linalg.inv(jac.T @ weight @ jac)
+        covariance = bread @ (jac.T @ weight @ sigma_r @ weight @ jac) @ bread
+    else:
+        dof = max(1, len(r) - 6)
+        covariance = np.linalg.inv(jac.T @ jac) * (r @ r) / dof
+    solution = PoseSolution(rotation, translation, r.reshape(-1, 2))
+    return Refinement(solution, 0.5 * (covariance + covariance.T), iterations)
+
+
+def solution_cost(gauge: Gauge, solution: PoseSolution, corner_covariance: np.ndarray | None, weighted: bool) -> float:
+    """The cost refine() minimises, at a solution (so minima from different starts can be compared)."""
+    r = solution.residuals.ravel()
+    if not weighted or corner_covariance is None or not corner_covariance.size:
+        return float(r @ r)
+    return float(r @ np.linalg.solve(residual_covariance(gauge, solution.rotation, corner_covariance), r))
+
+
+SEARCH_SCALES = (3.0, 8.0, 20.0)  # hop lengths along a weak mode, in its standard deviations
+SEARCH_MODES = 2  # the weakest directions of the pose
+SEARCH_ROUNDS = 3  # hop again from an improved minimum
+MAX_SUBSETS = 5
+TRIAGE_ITERATIONS = 4  # a few LM steps tell which basin a start is in
+TRIAGE_KEEP = 2  # starts refined fully per round
+TRIAGE_MARGIN = 1.5  # a triaged start this much above the best is not refined further
+
+
+@dataclass(frozen=True)
+class _Ridges:
+    """A subset of a gauge's ridges, enough for four_ridge_candidates()."""
+
+    u: np.ndarray
+    w: np.ndarray
+    q: np.ndarray
+
+
+def subset_starts(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
+    """Starting poses from 4-ridge subsets (n >= 5): each subset's null-space candidates.
+
+    The n-ridge linear closed form blends all corners into one least-squares answer; when the ridges are
+    nearly parallel it lands in the wrong basin, while a well-spread subset of four often does not.
+    """
+    n = len(corners)
+    if n < 5:
+        return []
+    subsets = [[(k + j) % n for j in range(4)] for k in range(min(n, MAX_SUBSETS))]
+    starts = []
+    for subset in subsets:
+        ridges = _Ridges(gauge.u[subset], gauge.w[subset], gauge.q[subset])
+        try:
+            candidates = four_ridge_candidates(ridges, corners[subset])
+        except (SolverError, np.linalg.LinAlgError):
+            continue
+        starts += [PoseSolution(c.rotation, c.translation, corner_residuals(gauge, corners, c.rotation, c.translation))
+                   for c in candidates]
+    return starts
+
+
+def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_covariance: np.ndarray | None,
+                  weighted: bool = True, max_iterations: int = 30, refine_fn=refine) -> tuple[Refinement, int]:
+    """The lowest minimum found around a refined pose; returns it and how many starts were tried.
+
+    When the pose is poorly determined (a long, curved valley of the cost along the weak mode: tilt of
+    the laser plane with a shift along the ridges) a local method can stop in a neighbouring basin
+    several standard deviations away. Starts: the 4-ridge subsets' candidates, then hops of 3, 8 and
+    20 standard deviations along the two weakest modes of the current best, repeated while it improves.
+    """
+    best, best_cost, tried = found, solution_cost(gauge, found.solution, corner_covariance, weighted), 0
+
+    def improve(starts: list[PoseSolution]) -> bool:
+        """Triage every start with a few iterations, then refine the most promising ones fully."""
+        nonlocal best, best_cost, tried
+        scored = []
+        for start in starts:
+            try:
+                short = refine_fn(gauge, corners, start, corner_covariance, weighted, TRIAGE_ITERATIONS, polish=False)
+            except np.linalg.LinAlgError:
+                continue
+            scored.append((solution_cost(gauge, short.solution, corner_covariance, weighted), short.solution))
+        tried += len(starts)
+        improved = False
+        for cost, solution in sorted(scored, key=lambda item: item[0])[:TRIAGE_KEEP]:
+            if cost >= best_cost * TRIAGE_MARGIN:
+                break
+            try:
+                result = refine_fn(gauge, corners, solution, corner_covariance, weighted, max_iterations)
+            except np.linalg.LinAlgError:
+                continue
+            cost = solution_cost(gauge, result.solution, corner_covariance, weighted)
+            if cost < best_cost * (1.0 - 1e-6):
+                best, best_cost, improved = result, cost, True
+        return improved
+
+    improve(subset_starts(gauge, corners))
+    for _ in range(SEARCH_ROUNDS):
+        centre = best.solution
+        variances, directions = np.linalg.eigh(best.covariance)
+        hops = []
+        for j in range(1, SEARCH_MODES + 1):
+            mode = directions[:, -j] * np.sqrt(max(variances[-j], 0.0))
+            for hop in (sign * scale * mode for scale in SEARCH_SCALES for sign in (1.0, -1.0)):
+                rotation = centre.rotation @ so3_exp(hop[:3])
+                translation = centre.translation + hop[3:]
+                hops.append(PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation)))
+        if not improve(hops):
+            break
+    return best, tried
