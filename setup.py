@@ -17,20 +17,8 @@ EXECUTABLES = {
     "bag_recorder": "profile_pose_ros.nodes.bag_recorder:main",
     "bag_player": "profile_pose_ros.nodes.bag_player:main",
     "profile_pose_bag": "profile_pose_ros.tools.bag_cli:main",
-    "profile_pose_replay": "profile_pose_ros.tools.replay:main",
-    "profile_pose_latency": "profile_pose_ros.tools.latency:main",
     "profile_pose_bringup": "profile_pose_ros.tools.bringup:main",
-    "profile_pose_experiment": "profile_pose_ros.tools.experiment:main",
-    "profile_pose_identify": "profile_pose_ros.tools.identify:main",
-    "profile_pose_fuzz": "profile_pose_ros.tools.fuzz:main",
-    "profile_pose_faults": "profile_pose_ros.tools.faults:main",
-    "profile_pose_soak": "profile_pose_ros.tools.soak:main",
-    "profile_pose_demo": "profile_pose_ros.tools.estimation_demo:main",
-    "profile_pose_benchmark": "profile_pose_ros.tools.benchmark:main",
-    "profile_pose_node_benchmark": "profile_pose_ros.tools.node_benchmark:main",
-    "profile_pose_study": "profile_pose_ros.tools.study:main",
-    "profile_pose_gauge": "profile_pose_ros.tools.gauge_cli:main",
-    "profile_pose_profiler_check": "profile_pose_ros.tools.profiler_check:main",
+    "profile_pose": "profile_pose_ros.tools.cli:main",  # the research, benchmark and commissioning tools
 }
 
 setup(

@@ -12,16 +12,17 @@ from profile_pose_ros.tools.plain_reference import estimate_reference
 
 
 def run_quick(tool: str, report_name: str, out: Path) -> tuple[str, dict]:
-    """Run a console script in its --quick mode; its stdout and the JSON report it wrote."""
-    exe = Path(sys.executable).parent / tool
-    result = subprocess.run([str(exe), "--quick", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    """Run `profile_pose <tool>` in its --quick mode; its stdout and the JSON report it wrote."""
+    exe = Path(sys.executable).parent / "profile_pose"
+    result = subprocess.run([str(exe), tool, "--quick", "--out", str(out)], capture_output=True, text=True,
+                            timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
     (report,) = out.glob(f"*/{report_name}")
     return result.stdout, json.loads(report.read_text())
 
 
 def test_quick_benchmark_runs_and_reports_every_row(tmp_path):
-    stdout, data = run_quick("profile_pose_benchmark", "benchmark.json", tmp_path)
+    stdout, data = run_quick("benchmark", "benchmark.json", tmp_path)
     for row in ("Proposed, this package: CD", "Proposed, this package: total (one call)", "Plain reference: total",
                 "Camera-based (OpenCV): CD", "Camera-based (OpenCV): PC"):
         assert data["stages_ms"][row]["n"] > 0, row
@@ -41,7 +42,7 @@ def test_scipy_reference_solves_the_same_problem(gauge, rng):
 
 
 def test_quick_node_benchmark_runs_both_rates(tmp_path):
-    stdout, data = run_quick("profile_pose_node_benchmark", "node_benchmark.json", tmp_path)
+    stdout, data = run_quick("node-benchmark", "node_benchmark.json", tmp_path)
     runs = data["runs"]
     assert "pose_estimator under load" in stdout
     assert [(r["rate_hz"], r["node"]) for r in runs] == [(83.3, "null"), (83.3, "pose_estimator"),
@@ -64,7 +65,7 @@ def test_the_null_node_queues_as_many_profiles_as_the_estimator():
 
 
 def test_quick_study_runs_end_to_end(tmp_path):
-    stdout, data = run_quick("profile_pose_study", "study.json", tmp_path)
+    stdout, data = run_quick("study", "study.json", tmp_path)
     assert "TABLE I" in stdout and "Fig. 3" in stdout
     assert set(data["figure_three"]) == {"0 um", "5 um", "25 um", "45 um"}
     assert data["figure_three"]["0 um"]["ref_reproj"]["mean"] < 1e-3  # noise-free: exact

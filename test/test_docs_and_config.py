@@ -55,7 +55,7 @@ def test_cell_parameter_files_are_generated_and_every_block_is_valid(name):
 
 
 def test_the_simulated_cells_loop_timing_and_clamps_are_the_experiments() -> None:
-    """cell.yaml (the bringup) runs the modal law as profile_pose_experiment does at 12 ms: the same loop
+    """cell.yaml (the bringup) runs the modal law as profile_pose experiment does at 12 ms: the same loop
     delay for the bridge's answer_wait, and per-period steps that are the speed limits over a period."""
     from profile_pose_ros.nodes.motoplus_bridge import PARAMETERS as BRIDGE
     from profile_pose_ros.nodes.parameters import defaults

@@ -6,8 +6,8 @@ from pathlib import Path
 
 
 def test_quick_demo_passes_its_checks(tmp_path):
-    exe = Path(sys.executable).parent / "profile_pose_demo"
-    result = subprocess.run([str(exe), "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
+    exe = Path(sys.executable).parent / "profile_pose"
+    result = subprocess.run([str(exe), "demo", "--quick", "--out", str(tmp_path)], capture_output=True, text=True,
                             timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "[FAIL]" not in result.stdout and result.stdout.count("[PASS]") == 4

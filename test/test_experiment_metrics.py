@@ -117,7 +117,7 @@ def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
 
 @pytest.mark.parametrize("composed", [False, True], ids=["processes", "cell_container"])
 def test_the_latency_budget_reads_every_stage_from_the_nodes(tmp_path, composed: bool) -> None:
-    """profile_pose_latency's default observer: each node's own timing, from its diagnostics. Composed,
+    """profile_pose latency's default observer: each node's own timing, from its diagnostics. Composed,
     the same four nodes in one process: every stage still happens (a moving increment is timed only when
     a fresh correction reached the bridge), handed over in-process."""
     from profile_pose_ros.tools.latency import NODE_STAGES, measure

@@ -1,4 +1,4 @@
-"""Fault injection on the running closed loop (profile_pose_faults): every process its own, sim_cell's
+"""Fault injection on the running closed loop (profile_pose faults): every process its own, sim_cell's
 controller the witness of what the robot was told."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Every decoder and parser of outside input, fuzzed (a short budget; `profile_pose_fuzz` runs 100,000 per
+"""Every decoder and parser of outside input, fuzzed (a short budget; `profile_pose fuzz` runs 100,000 per
 target): only the documented error type may escape; and decoded values through the nodes' logic, where no
 motion the raw values forbid may come out (the node targets must also catch nodes with a check removed)."""
 import pytest

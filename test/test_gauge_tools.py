@@ -1,4 +1,4 @@
-"""profile_pose_gauge: each design rule fails on a hand-made gauge that breaks it; check, design and export
+"""profile_pose gauge: each design rule fails on a hand-made gauge that breaks it; check, design and export
 work end to end; the STL is a closed solid by trimesh's own tests."""
 import json
 

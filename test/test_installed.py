@@ -17,12 +17,11 @@ from pathlib import Path
 import pytest
 
 from conftest import ROOT
+from profile_pose_ros.tools.cli import TOOLS as CLI_TOOLS
 
 # argparse tools answer --help; nodes start, show up in the graph, and stop on SIGINT with exit status 0
-TOOLS = ["profile_pose_bag", "profile_pose_replay", "profile_pose_latency", "profile_pose_bringup",
-         "profile_pose_experiment", "profile_pose_identify", "profile_pose_fuzz", "profile_pose_faults", "profile_pose_soak",
-         "profile_pose_demo", "profile_pose_benchmark", "profile_pose_node_benchmark", "profile_pose_study",
-         "profile_pose_gauge", "profile_pose_profiler_check"]
+# (the research and commissioning tools are subcommands of profile_pose)
+TOOLS = [["profile_pose_bag"], ["profile_pose_bringup"], ["profile_pose"]] + [["profile_pose", name] for name in CLI_TOOLS]
 NODES = {"pose_estimator": ["pose_estimator"], "profiler_driver": ["profiler_driver"],
          "pd_compensator": ["pd_compensator"], "motoplus_bridge": ["motoplus_bridge"], "sim_cell": ["sim_cell"],
          "cell_container": ["profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge"],
@@ -66,12 +65,15 @@ def test_the_installed_package_is_the_one_that_runs(workspace) -> None:
     assert Path(module).is_relative_to(prefix) and Path(firmware).is_relative_to(prefix), probe.stderr
 
 
-@pytest.mark.parametrize("tool", TOOLS)
+@pytest.mark.parametrize("tool", TOOLS, ids=" ".join)
 def test_every_installed_tool_answers_help(workspace, tool) -> None:
     prefix, env = workspace
-    run = subprocess.run([str(prefix / "lib" / "profile_pose_ros" / tool), "--help"], capture_output=True,
-                         text=True, env=env, cwd="/", timeout=120)
+    executable, *subcommand = tool
+    run = subprocess.run([str(prefix / "lib" / "profile_pose_ros" / executable), *subcommand, "--help"],
+                         capture_output=True, text=True, env=env, cwd="/", timeout=120)
     assert run.returncode == 0 and "usage" in run.stdout.lower(), run.stdout + run.stderr
+    if subcommand:  # argparse names the tool as it is typed
+        assert f"profile_pose {subcommand[0]}" in run.stdout
 
 
 @pytest.mark.parametrize("executable", sorted(NODES))

@@ -203,7 +203,7 @@ def test_a_knock_is_damped_as_well_with_four_poses_a_period() -> None:
     assert four < 1.3 * one and four < 0.2 * mean_ringing("pd", 1)
 
 
-SIM_DAMPING = (0.68, 0.018, 0.46, 0.7, 0.7, 0.7)  # what profile_pose_identify finds on sim_cell's arm
+SIM_DAMPING = (0.68, 0.018, 0.46, 0.7, 0.7, 0.7)  # what profile_pose identify finds on sim_cell's arm
 
 
 def step_metrics(t: np.ndarray, y: np.ndarray, size: float) -> dict:

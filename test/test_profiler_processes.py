@@ -1,4 +1,4 @@
-"""sim_cell, profiler_driver and pose_estimator as their own processes (profile_pose_profiler_check)."""
+"""sim_cell, profiler_driver and pose_estimator as their own processes (profile_pose profiler-check)."""
 from __future__ import annotations
 
 from profile_pose_ros.tools.graph import Graph

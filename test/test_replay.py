@@ -1,5 +1,5 @@
 """Record -> replay -> re-estimate: the profiles recorded from the running graph give back the recorded
-poses bit for bit, offline (profile_pose_replay) and through bag_player into a fresh pose_estimator."""
+poses bit for bit, offline (profile_pose replay) and through bag_player into a fresh pose_estimator."""
 from __future__ import annotations
 
 import pytest

@@ -1,4 +1,4 @@
-"""profile_pose_soak, briefly: the closed loop with the trigger clock paused around the run gives exact totals."""
+"""profile_pose soak, briefly: the closed loop with the trigger clock paused around the run gives exact totals."""
 from __future__ import annotations
 
 from profile_pose_ros.tools import soak

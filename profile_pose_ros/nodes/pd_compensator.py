@@ -54,7 +54,7 @@ PARAMETERS = [
     Param("acceleration_psd", [20.0, 0.5, 20.0, 2.0, 2.0, 2.0], "Kalman filter process noise per axis "
           "((m/s^2)^2/Hz): larger follows faster motion, smaller averages more noise.", read_only=True),
     Param("shaper_frequency", 10.0, "The arm's resonance (Hz, natural frequency) that a ZVD input shaper keeps "
-          "out of the corrections; 0 turns the shaper off. Read it off an open-loop step (profile_pose_experiment "
+          "out of the corrections; 0 turns the shaper off. Read it off an open-loop step (profile_pose experiment "
           "--modes open prints the ringing).", 0.0, 100.0, read_only=True),
     Param("shaper_damping", 0.05, "Damping ratio of that resonance, for the shaper (the ZVD shaper tolerates "
           "+-20 % error on the frequency).", 0.0, 0.9, read_only=True),
@@ -64,7 +64,7 @@ PARAMETERS = [
           "faster profiler's other poses are not used.",
           read_only=True),
     Param("modal_frequency", [10.0] * 6, "modal: the arm mode's natural frequency per axis (Hz), as the open-loop "
-          "step shows it (profile_pose_experiment --modes open).", read_only=True),
+          "step shows it (profile_pose experiment --modes open).", read_only=True),
     Param("modal_damping", [0.68, 0.13, 0.53, 0.7, 0.7, 0.7], "modal: the mode's damping ratio per axis (the "
           "open-loop step's; the paper's Table IV for x y z).", read_only=True),
     Param("modal_effort", [10.0, 30.0, 10.0, 10.0, 10.0, 10.0], "modal: the LQR's weight on each increment "
@@ -84,7 +84,7 @@ PARAMETERS = [
     Param("reference_shaping", "lag", "modal: how a new reference is reached. lag: the feedback alone towards "
           "the reference through a first-order filter (reference_time_constant): ~1.1 s to settle a step. zvdd: "
           "along a planned command, a ramp at 0.8 x max_speed through a ZVDD shaper matched to each axis's mode "
-          "(modal_frequency, modal_damping: profile_pose_identify), sent as feedforward, the feedback acting on "
+          "(modal_frequency, modal_damping: profile_pose identify), sent as feedforward, the feedback acting on "
           "the difference from the model's motion: ~0.2 s to settle on sim_cell when every increment arrives in "
           "its period (the bridge's answer_wait 0, and a loop_delay that counts the extra period; "
           "docs/robot_side.md).", read_only=True),

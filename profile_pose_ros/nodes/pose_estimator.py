@@ -133,7 +133,7 @@ def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOption
                        gauge_frame: str, into: PoseMessagePair | SerializedPosePair | None = None,
                        hint=HALF_TURN_X) -> ProfileResult:
     """The node's whole computation for one profile (a serialized PointCloud2, as taken from the topic or
-    read from a bag), without the node: profile_pose_replay runs exactly this on recorded profiles, so a
+    read from a bag), without the node: profile_pose replay runs exactly this on recorded profiles, so a
     replay reproduces the published poses bit for bit. The poses are `into`'s messages, refilled, when it
     is given (the node's, reused), else new ones; `hint` is orientation_hint (the quaternion's hemisphere)."""
     try:

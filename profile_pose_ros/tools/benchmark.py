@@ -1,4 +1,4 @@
-"""profile_pose_benchmark: the paper's Table III, side by side in one run on this machine.
+"""profile_pose benchmark: the paper's Table III, side by side in one run on this machine.
 
 Times, over the same >= 1000 profiles of random poses with 5 um depth noise:
   - this package's runtime path (compiled): corner detection (CD), closed form (PC-CF), refinement

@@ -1,5 +1,5 @@
 """The controller-side C codec (firmware/motoplus), built for this host and driven through ctypes, and
-the Python codec's answer to the same bytes: the tests and profile_pose_fuzz compare the two."""
+the Python codec's answer to the same bytes: the tests and profile_pose fuzz compare the two."""
 from __future__ import annotations
 
 import ctypes

@@ -31,7 +31,7 @@ def add_control_law_option(parser, help_text: str = "") -> None:
 SIM_CELL = {
     "profiler_driver": {"serial_url": "socket://127.0.0.1:24693"},
     "pose_estimator": {"refine_model": "dense", "max_profile_age": 0.05},
-    # the modal law as profile_pose_experiment runs it at 12 ms (tools/experiment.py: loop_delay, bridge_for,
+    # the modal law as profile_pose experiment runs it at 12 ms (tools/experiment.py: loop_delay, bridge_for,
     # period_steps; a test keeps them equal)
     "pd_compensator": {"control_law": CELL_CONTROL_LAW, "loop_delay": 0.02661},
     "motoplus_bridge": {"max_step": [6e-4, 6e-4, 6e-4, 2.4e-3, 2.4e-3, 2.4e-3]},

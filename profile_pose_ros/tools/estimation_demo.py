@@ -181,7 +181,7 @@ def main(argv=None) -> int:
         timing_rows.append([label, s["mean"], s["std"], s["median"], s["p99"], s["max"]])
     total = stats["t_total"]
     print("\n" + table(["stage (ms)", "mean", "std", "median", "p99", "max"], timing_rows))
-    print("(side-by-side speed with the paper's Table III layout: profile_pose_benchmark)")
+    print("(side-by-side speed with the paper's Table III layout: profile_pose benchmark)")
     results["noisy"] = {"stats": stats, "failures": noisy_failures, "nees_mean": nees, "total_ms": total}
 
     if not args.no_node:

@@ -1,4 +1,4 @@
-"""profile_pose_experiment: the paper's IV-C protocol (Table IV, Figs. 5 and 6) on the simulated cell,
+"""profile_pose experiment: the paper's IV-C protocol (Table IV, Figs. 5 and 6) on the simulated cell,
 through the full ROS graph: sim_cell -> profiler_driver -> pose_estimator -> pd_compensator ->
 motoplus_bridge -> sim_cell's robot controller, each its own process.
 
@@ -538,7 +538,7 @@ def main(argv=None) -> int:
     parser.add_argument("--psd", type=float, nargs=6, help="pd_compensator acceleration_psd (Kalman process noise)")
     add_control_law_option(parser, ": modal damps the arm's mode, pd only keeps its own commands away from it")
     parser.add_argument("--compensator-params", type=Path, help="a parameter file for pd_compensator, e.g. the "
-                        "modal model profile_pose_identify wrote")
+                        "modal model profile_pose identify wrote")
     parser.add_argument("--modal-frequency-scale", type=float, default=1.0, help="run the modal law with its "
                         "model's frequencies times this (0.8, 1.2: a model 20 %% off, on purpose)")
     parser.add_argument("--answer-wait", type=float, help="motoplus_bridge's answer_wait (periods)")
@@ -614,7 +614,7 @@ def main(argv=None) -> int:
         info = bag_info(bag)
         size_mb = sum(f.stat().st_size for f in bag.iterdir()) / 1e6
         print(f"bag: {bag} ({info.message_count} messages on {len(info.topics)} topics, {size_mb:.0f} MB); "
-              f"re-estimate it offline with\n  profile_pose_replay {bag} --params-file {out / 'logs' / 'params.yaml'}")
+              f"re-estimate it offline with\n  profile_pose replay {bag} --params-file {out / 'logs' / 'params.yaml'}")
     return 0
 
 

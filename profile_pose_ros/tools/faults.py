@@ -1,4 +1,4 @@
-"""profile_pose_faults: the faults a factory has, injected into the running closed loop on the simulated cell
+"""profile_pose faults: the faults a factory has, injected into the running closed loop on the simulated cell
 (sim_cell -> profiler_driver -> pose_estimator -> pd_compensator -> motoplus_bridge, each its own process),
 with what the safety invariants saw, the time to a safe stop and the time to recover, per fault.
 

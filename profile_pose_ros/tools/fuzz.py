@@ -1,4 +1,4 @@
-"""profile_pose_fuzz: every decoder and parser of outside input against mutated and random input, and
+"""profile_pose fuzz: every decoder and parser of outside input against mutated and random input, and
 decoded but absurd values through the nodes' own logic.
 
 For each target, valid inputs are encoded, then mutated (bit flips, byte changes, insertions, deletions,

@@ -1,10 +1,10 @@
-"""profile_pose_gauge: check, design and export gauges before one is machined or printed (paper III-D).
+"""profile_pose gauge: check, design and export gauges before one is machined or printed (paper III-D).
 
-  profile_pose_gauge check  GAUGE.yaml   rules, range of motion, occlusion limit, precision (CRLB and
+  profile_pose gauge check  GAUGE.yaml   rules, range of motion, occlusion limit, precision (CRLB and
                                          Monte-Carlo) over a required range of motion; table, JSON, plot
-  profile_pose_gauge design --out NEW.yaml  search gauges minimising the worst CRLB over that range, under
+  profile_pose gauge design --out NEW.yaml  search gauges minimising the worst CRLB over that range, under
                                          the fabrication rules, against a reference gauge
-  profile_pose_gauge export GAUGE.yaml --out GAUGE.stl   the solid as a watertight STL (mm)
+  profile_pose gauge export GAUGE.yaml --out GAUGE.stl   the solid as a watertight STL (mm)
 """
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ def load(path: str) -> Gauge:
     try:
         return Gauge.from_yaml(path)
     except GaugeError as exc:
-        raise SystemExit(f"profile_pose_gauge: {exc}") from None
+        raise SystemExit(f"profile_pose gauge: {exc}") from None
 
 
 def monte_carlo(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, noise: float, seed: int) -> dict:
@@ -160,7 +160,7 @@ def design(args) -> int:
     rules, motion, noise = rules_from(args), motion_from(args), args.noise * 1e-6
     reference_worst = worst_bound(precision_over(reference, motion_poses(reference, motion), noise, dense=False))
     if not np.isfinite(reference_worst[0]):
-        raise SystemExit(f"profile_pose_gauge: the reference gauge {args.reference} loses a corner inside the "
+        raise SystemExit(f"profile_pose gauge: the reference gauge {args.reference} loses a corner inside the "
                          "required motion; pick a smaller motion or another reference")
     from tqdm import tqdm
 
@@ -194,11 +194,11 @@ def design(args) -> int:
        f"{ratio[0]:.2f}x lower in position, {ratio[1]:.2f}x in rotation"))
     import yaml
 
-    header = (f"# Designed by profile_pose_gauge design (seed {args.seed}, {args.generations} generations) against\n"
+    header = (f"# Designed by profile_pose gauge design (seed {args.seed}, {args.generations} generations) against\n"
               f"# {Path(args.reference).name}: worst corner-model CRLB over the required motion at {args.noise:g} um noise\n"
               f"# {thorough['designed'][0] * 1e6:.1f} um / {thorough['designed'][1] * 1e6:.1f} urad "
               f"(reference {thorough['reference'][0] * 1e6:.1f} um / {thorough['reference'][1] * 1e6:.1f} urad).\n"
-              f"# Check it with: profile_pose_gauge check {args.out}\n")
+              f"# Check it with: profile_pose gauge check {args.out}\n")
     Path(args.out).write_text(header + yaml.safe_dump(gauge.to_dict(), sort_keys=False), encoding="utf-8")
     print(f"wrote {args.out}")
     return 0
@@ -216,7 +216,7 @@ def export(args) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="profile_pose_gauge", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="profile_pose gauge", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
     p = commands.add_parser("check", help="validity, range of motion, occlusion, precision")
     p.add_argument("gauge")

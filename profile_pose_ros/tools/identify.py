@@ -1,8 +1,8 @@
-"""profile_pose_identify: the arm's mode per axis (frequency, damping, gain, delay, with uncertainties)
+"""profile_pose identify: the arm's mode per axis (frequency, damping, gain, delay, with uncertainties)
 from small open-loop steps measured by the profiler, for pd_compensator's modal law.
 
-    profile_pose_identify                 # on the simulated cell: it steps the robot program itself
-    profile_pose_identify --bag trial_7   # a real cell: poses recorded while the robot program stepped
+    profile_pose identify                 # on the simulated cell: it steps the robot program itself
+    profile_pose identify --bag trial_7   # a real cell: poses recorded while the robot program stepped
 
 On a real cell, record `pose` (bag_recorder) while the robot program makes small fast moves (0.2-0.5 mm,
 one axis at a time, at least 1.5 s apart, the bridge disarmed) and give the bag and the step size; the
@@ -166,7 +166,7 @@ def main(argv=None) -> int:
     parser.add_argument("--rate", type=float, default=83.333, help="control rate of the simulated cell (Hz)")
     parser.add_argument("--gauge", default="", help="gauge YAML of the simulated cell")
     parser.add_argument("--params-out", type=Path, help="also write the parameter file here (e.g. for "
-                        "profile_pose_experiment --compensator-params)")
+                        "profile_pose experiment --compensator-params)")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "identify")
@@ -188,7 +188,7 @@ def main(argv=None) -> int:
                  for axis, m in modes.items()], title=f"the arm's mode from {sum(map(len, fits.values()))} steps of "
                                                       f"{args.size:g} mm (uncertainties: 1 sigma)"))
     params = parameter_file(modes, compensator["modal_frequency"], compensator["modal_damping"])
-    text = ("# profile_pose_identify: pd_compensator's modal model, identified from "
+    text = ("# profile_pose identify: pd_compensator's modal model, identified from "
             + (f"{args.bag}" if args.bag else "the simulated cell") + "\n"
             + yaml.safe_dump(params, default_flow_style=None, sort_keys=False))
     for path in [out / "modal.yaml"] + ([args.params_out] if args.params_out else []):

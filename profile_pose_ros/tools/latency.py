@@ -1,4 +1,4 @@
-"""profile_pose_latency: the loop's latency budget on the simulated cell, stage by stage.
+"""profile_pose latency: the loop's latency budget on the simulated cell, stage by stage.
 
 Every message of the chain carries the profile's trigger time as its stamp (profile -> pose ->
 correction -> the bridge's `~/increment`), and DDS gives each message's publish time (source timestamp),

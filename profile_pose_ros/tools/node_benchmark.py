@@ -1,4 +1,4 @@
-"""profile_pose_node_benchmark: the pose_estimator node under load, over real DDS between processes.
+"""profile_pose node-benchmark: the pose_estimator node under load, over real DDS between processes.
 
 For each rate (83.3 Hz, the paper's control rate, and 1 kHz, the profiler's maximum) a fresh
 pose_estimator process receives rendered 3200-point profiles from this process for the given duration.

@@ -1,4 +1,4 @@
-"""profile_pose_fuzz's node targets: decoded but absurd values through the nodes' own logic.
+"""profile_pose fuzz's node targets: decoded but absurd values through the nodes' own logic.
 
 The decoders only promise a documented error for bytes they cannot read. What a node then does with a
 well-formed message carrying a non-unit quaternion, a NaN, a stamp an hour ahead, a foreign frame or a

@@ -2,7 +2,7 @@
 
 It takes each profile the way pose_estimator does (serialized, sensor-data QoS, through a FastInput,
 the same run loop) and publishes a pose carrying the profile's stamp, serialized as pose_estimator's are.
-What profile_pose_node_benchmark measures for it is what rclpy, DDS and the machine's scheduling cost a
+What profile_pose node-benchmark measures for it is what rclpy, DDS and the machine's scheduling cost a
 node before it does any work, so the estimator's own share is the difference. Benchmark-only: no
 launch script or cell file uses it.
 """

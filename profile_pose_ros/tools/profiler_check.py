@@ -1,4 +1,4 @@
-"""profile_pose_profiler_check: sim_cell + profiler_driver + pose_estimator, each its own process, checked
+"""profile_pose profiler-check: sim_cell + profiler_driver + pose_estimator, each its own process, checked
 against /sim/ground_truth.
 
 The profiler moves (sines on every axis) so that a profile paired with the wrong trigger shows as a pose

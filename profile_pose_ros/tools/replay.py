@@ -1,4 +1,4 @@
-"""profile_pose_replay: re-run pose_estimator's computation on the profiles of a bag, offline and as fast
+"""profile_pose replay: re-run pose_estimator's computation on the profiles of a bag, offline and as fast
 as possible, and compare with the poses the live node published (and with the truth, when the bag has
 sim_cell's /sim/ground_truth).
 
@@ -179,7 +179,7 @@ def main(argv=None) -> int:
         values = estimator_values(args.params_file, parse_overrides(args.param), args.namespace)
         report = replay(args.bag, values, args.profile_topic, args.output)
     except (BagError, ValueError, OSError) as exc:
-        print(f"profile_pose_replay: {exc}", file=sys.stderr)
+        print(f"profile_pose replay: {exc}", file=sys.stderr)
         return 2
     print_report(report)
     if args.expect_identical and (report["different"] or report["recorded_only"] or not report["identical"]):

@@ -1,4 +1,4 @@
-"""profile_pose_soak: the closed loop on the simulated cell for a long time (10 minutes at a 1 kHz profile
+"""profile_pose soak: the closed loop on the simulated cell for a long time (10 minutes at a 1 kHz profile
 rate by default), each node its own process, reporting per interval: profiles triggered and poses
 delivered to the compensator, trigger->pose and trigger->increment latency p99 (as the nodes time them:
 the worst diagnostics window's), resident memory and CPU share of every process, and every /diagnostics

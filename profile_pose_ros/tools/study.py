@@ -1,4 +1,4 @@
-"""profile_pose_study: the paper's simulation study (III-B, III-C) with true errors and Cramér-Rao bounds.
+"""profile_pose study: the paper's simulation study (III-B, III-C) with true errors and Cramér-Rao bounds.
 
 Table I: n in {4, 5, 7, 10} ridges x m in {10, 50, 100, 150} random gauges (nested subsets of the same
 150) x 100 random poses at 5 um depth noise: mean/std of the reprojection error (eq. 17 as a length) for
