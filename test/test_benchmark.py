@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
-from profile_pose_ros.tools.plain_reference import estimate_reference
+from profile_pose_ros.tools.numpy_baseline import estimate_baseline
 
 
 def run_quick(tool: str, report_name: str, out: Path) -> tuple[str, dict]:
@@ -23,20 +23,20 @@ def run_quick(tool: str, report_name: str, out: Path) -> tuple[str, dict]:
 
 def test_quick_benchmark_runs_and_reports_every_row(tmp_path):
     stdout, data = run_quick("benchmark", "benchmark.json", tmp_path)
-    for row in ("Proposed, this package: CD", "Proposed, this package: total (one call)", "Plain reference: total",
+    for row in ("Proposed, this package: CD", "Proposed, this package: total (one call)", "Numpy baseline: total",
                 "Camera-based (OpenCV): CD", "Camera-based (OpenCV): PC"):
         assert data["stages_ms"][row]["n"] > 0, row
         assert data["stages_ms"][row]["median"] > 0
-    assert set(data["ratios"]) == {"plain / ours (median total)", "camera / ours (median CD + PC)"}
+    assert set(data["ratios"]) == {"baseline / ours (median total)", "camera / ours (median CD + PC)"}
     assert data["data_bytes"]["profile (3200 x float32)"] == 12800
     assert "time per measurement (ms)" in stdout
 
 
-def test_scipy_reference_solves_the_same_problem(gauge, rng):
+def test_numpy_baseline_solves_the_same_problem(gauge, rng):
     for _ in range(20):
         points = render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng)
         ours = estimate_pose(points, gauge)
-        rotation, translation, _ = estimate_reference(points, gauge)
+        rotation, translation, _ = estimate_baseline(points, gauge)
         assert np.max(np.abs(translation - ours.t)) < 1e-7  # scipy's LM stops on its own tolerances
         assert np.max(np.abs(rotation - ours.R)) < 1e-7
 

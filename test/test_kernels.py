@@ -11,7 +11,7 @@ from profile_pose_ros.core import EstimatorOptions, render_profile, sample_pose
 from profile_pose_ros.core.compiled import aot
 from profile_pose_ros.core.compiled import estimate_kernel
 from profile_pose_ros.core.estimation.result import position_sigma
-from profile_pose_ros.core.estimation.compiled_path import option_vector
+from profile_pose_ros.core.estimation.stages import option_vector
 
 
 def run(kernel, points, gauge, opt):
@@ -40,7 +40,7 @@ def test_prebuilt_and_jit_kernels_agree(gauge, rng):
 
 
 def test_node_side_import_does_not_load_numba(gauge):
-    code = ("import sys; from profile_pose_ros.core import Gauge; from profile_pose_ros.core.estimation.compiled_path "
+    code = ("import sys; from profile_pose_ros.core import Gauge; from profile_pose_ros.core.estimation.estimator "
             f"import warm_up; warm_up(Gauge.from_yaml({str(gauge.source)!r})); "
             "from profile_pose_ros.core.compiled import loader; print(loader.kernel_name(), 'numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600).stdout.split()

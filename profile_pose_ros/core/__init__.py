@@ -11,10 +11,11 @@ Rooms, each importing only those listed before it:
 
     from profile_pose_ros.core import Gauge, render_profile, estimate_pose
 """
-from .estimation.corners import CornerOptions, CornerResult, detect_corners
+from .estimation.corners import CornerOptions, CornerResult
 from .estimation.estimator import estimate_pose, pose_error
 from .estimation.result import EstimatorOptions, PoseEstimate
 from .estimation.solver import PoseSolution, closed_form
+from .estimation.stages import detect_corners
 from .model.gauge import Gauge, GaugeError
 from .model.poses import PoseRange, corners_visible, sample_pose
 from .model.render import DEFAULT_PROFILER, ProfilerModel, render_profile, true_corners

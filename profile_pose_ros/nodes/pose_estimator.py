@@ -24,8 +24,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ..core.compiled import loader
-from ..core.estimation.compiled_path import warm_up
-from ..core.estimation.estimator import estimate_pose
+from ..core.estimation.estimator import estimate_pose, warm_up
 from ..core.estimation.result import WEIGHTINGS, EstimatorOptions
 from ..core.model.gauge import Gauge, GaugeError
 from ..core.timing.latency_window import LatencyWindow

@@ -3,7 +3,7 @@
 Times, over the same >= 1000 profiles of random poses with 5 um depth noise:
   - this package's runtime path (compiled): corner detection (CD), closed form (PC-CF), refinement
     (PC-refined), and the whole estimate_pose call (total; one call, so less than the stage sum);
-  - the plain reference (numpy RDP, scipy least_squares), tools/plain_reference.py;
+  - the numpy baseline (numpy RDP and line fits, scipy least_squares), tools/numpy_baseline.py;
   - the paper's camera pipeline: OpenCV findChessboardCorners + cornerSubPix (CD) and solvePnP (PC) on
     synthetic 2590 x 1942 8-bit images of a chessboard with 3 x 4 inner corners at random poses;
 in rounds that interleave the three (so a slow moment of a shared machine falls on all of them, not on
@@ -21,9 +21,10 @@ import numpy as np
 
 from ..core import EstimatorOptions, Gauge, estimate_pose, render_profile, sample_pose
 from ..core.compiled import estimate_kernel
-from ..core.estimation.compiled_path import option_vector, warm_up
+from ..core.estimation.estimator import warm_up
+from ..core.estimation.stages import option_vector
 from ..resources import DEFAULT_GAUGE, config_path
-from .plain_reference import estimate_reference
+from .numpy_baseline import estimate_baseline
 from .report import run_dir, summary, table, write_json
 
 IMAGE_SIZE = (2590, 1942)  # Basler acA2500-14gc, the paper's camera
@@ -70,10 +71,10 @@ def time_ours(gauge: Gauge, profiles: list[np.ndarray], options: EstimatorOption
     return stages
 
 
-def time_plain(gauge: Gauge, profiles: list[np.ndarray]) -> dict:
+def time_baseline(gauge: Gauge, profiles: list[np.ndarray]) -> dict:
     stages = {"CD": [], "PC closed form": [], "PC refined": [], "total": []}
     for points in profiles:
-        _, _, timings = estimate_reference(points, gauge)
+        _, _, timings = estimate_baseline(points, gauge)
         stages["CD"].append(timings["corner_detection"])
         stages["PC closed form"].append(timings["closed_form"])
         stages["PC refined"].append(timings["refinement"])
@@ -181,13 +182,13 @@ def main(argv=None) -> int:
     compile_s = warm_up(gauge, options)
     profiles = [render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng) for _ in range(scans)]
     # In rounds, side by side: a round of ours lasts ~0.1 s, and on a shared machine one slow tenth of a
-    # second would decide the median. Each round times the camera on a share of the images, the plain
-    # reference on a share of the profiles, then ours on every profile: all three see the same minutes.
+    # second would decide the median. Each round times the camera on a share of the images, the numpy
+    # baseline on a share of the profiles, then ours on every profile: all three see the same minutes.
     rounds = 1 if args.quick else args.rounds
-    ours, plain, camera = {}, {}, {}
+    ours, baseline, camera = {}, {}, {}
     for r in range(rounds):
         merge(camera, time_camera(len(range(r, images, rounds)), rng))
-        merge(plain, time_plain(gauge, profiles[r::rounds]))  # ~2 s: OpenCV's worker threads go idle first
+        merge(baseline, time_baseline(gauge, profiles[r::rounds]))  # ~2 s: OpenCV's worker threads go idle first
         merge(ours, time_ours(gauge, profiles, options))
 
     rows, results = [], {"machine": platform.processor() or platform.machine(), "python": sys.version.split()[0],
@@ -204,14 +205,14 @@ def main(argv=None) -> int:
     if camera.get("CD"):
         add("Camera-based (OpenCV)", camera)
     add("Proposed, this package", ours)
-    add("Plain reference", plain)
+    add("Numpy baseline", baseline)
     print(f"gauge '{gauge.name}', {scans} scans at 5 um noise, {rounds} rounds; estimator compiled/loaded in "
           f"{compile_s:.2f} s")
     print(table(["", "stage", "mean / std", "median", "max", "min", "p99"], rows, "time per measurement (ms)"))
 
     ours_total = results["stages_ms"]["Proposed, this package: total (one call)"]["median"]
-    plain_total = results["stages_ms"]["Plain reference: total"]["median"]
-    ratios = {"plain / ours (median total)": plain_total / ours_total}
+    baseline_total = results["stages_ms"]["Numpy baseline: total"]["median"]
+    ratios = {"baseline / ours (median total)": baseline_total / ours_total}
     profile_bytes = 3200 * 4
     image_bytes = IMAGE_SIZE[0] * IMAGE_SIZE[1]
     if camera.get("CD"):

@@ -66,7 +66,7 @@ def replay(bag: str | Path, values: dict, profile_topic: str | None = None, outp
     from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
     from rclpy.serialization import deserialize_message, serialize_message
 
-    from ..core.estimation.compiled_path import warm_up
+    from ..core.estimation.estimator import warm_up
     from ..core.model.gauge import Gauge
     from ..nodes.messages import pose_difference, stamp_ns
     from ..nodes.pose_estimator import options_from, poses_from_profile

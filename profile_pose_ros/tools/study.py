@@ -24,7 +24,7 @@ import numpy as np
 from ..core import estimate_pose, pose_error, render_profile, sample_pose
 from ..core.design.crlb import corner_crlb, dense_crlb, position_rotation_rms
 from ..core.estimation.estimator import is_wrong_minimum, pose_nees
-from ..core.estimation.compiled_path import COMPILED
+from ..core.estimation.stages import detect_corners
 from ..core.design.gauge_design import random_gauge
 from ..core.compiled.render_kernel import trace_depth_fast
 from ..core.estimation.solver import paper_closed_form
@@ -53,13 +53,13 @@ def wrong_minimum(points, gauge, estimate, rotation, t, corner_cov) -> float:
     """1.0 / 0.0 for an accepted estimate (estimator.is_wrong_minimum), NaN for a rejected one."""
     if not estimate.ok:
         return np.nan
-    return float(is_wrong_minimum(points, gauge, estimate, rotation, t, COMPILED, corner_cov))
+    return float(is_wrong_minimum(points, gauge, estimate, rotation, t, corner_cov))
 
 
 def bound_rms(gauge, rotation, t, with_dense: bool) -> list[float]:
     """[corner CRLB pos, rot, dense CRLB pos, rot] (rms, m and rad) at TABLE_NOISE; dense NaN unless asked."""
     corner = position_rotation_rms(corner_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast,
-                                               detect=COMPILED.detect))
+                                               detect=detect_corners))
     if not with_dense:
         return [*corner, np.nan, np.nan]
     return [*corner, *position_rotation_rms(dense_crlb(gauge, rotation, t, TABLE_NOISE, trace=trace_depth_fast))]
@@ -96,7 +96,7 @@ def gauge_trial(task: tuple) -> dict:
                 spiky_ours = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0), rotation, t, n)[4]
                 spiky_paper = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0,
                                                              **PAPER_PIPELINE), rotation, t, n)[4]
-            found = COMPILED.detect(points, n) if ours.ok or paper.ok else None  # once for both checks
+            found = detect_corners(points, n) if ours.ok or paper.ok else None  # once for both checks
             corner_cov = found.covariance(None) if found is not None and found.ok else None
             extra.append([wrong_minimum(points, gauge, ours, rotation, t, corner_cov),
                           wrong_minimum(points, gauge, paper, rotation, t, corner_cov),

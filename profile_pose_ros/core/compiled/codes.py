@@ -1,5 +1,5 @@
-"""Status codes, the option-vector layout and the refinement's stopping rules, shared by the compiled
-estimator, its wrapper and the numpy reference.
+"""Status codes, the option-vector layout and the refinement's stopping rules of the compiled estimator,
+shared with the Python that calls it.
 
 Kept apart from the kernels so that code using a prebuilt kernel never imports numba.
 """
@@ -29,7 +29,7 @@ N_OPTIONS = 17
 
 JIT = dict(cache=True, error_model="numpy", nogil=True)  # numba.njit options of every compiled function
 
-# the refinement's final Gauss-Newton polish (both implementations stop by the same rules)
+# the refinement's final Gauss-Newton polish
 POLISH_STEPS = 4
 POLISH_COST_TOLERANCE = 1e-9
 POLISH_STEP_TOLERANCE = 1e-12  # m or rad: the next Gauss-Newton step would be far below this

@@ -12,12 +12,47 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..estimation.corners import CornerOptions, detect_corners
+from ..estimation.corners import CornerOptions
 from ..estimation.result import ros_covariance
+from ..estimation.solver import residual_covariance, residual_jacobian
+from ..estimation.stages import detect_corners
 from ..model.gauge import Gauge
 from ..model.render import DEFAULT_PROFILER, ProfilerModel, render_profile, shadow_mask, trace_depth
 from ..model.rotation import so3_exp
-from ..estimation.solver import residual_covariance, residual_jacobian
+
+E1 = np.array([1.0, 0.0, 0.0])
+E3 = np.array([0.0, 0.0, 1.0])
+
+
+def select_points(gauge: Gauge, points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                  ridge_margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the points the dense model can use and their faces, from where they land in G (the
+    selection compiled/dense_kernel.py makes at every step, here once at the true pose)."""
+    mapped = translation + points[:, :1] * rotation[:, 0] + points[:, 1:] * rotation[:, 2]
+    ridges = gauge.ridge_x(mapped[:, 1])
+    face = np.sum(ridges < mapped[:, :1], axis=1)
+    edges = np.column_stack([np.full(len(mapped), -gauge.width / 2), ridges, np.full(len(mapped), gauge.width / 2)])
+    clearance = np.min(np.abs(edges - mapped[:, :1]), axis=1)
+    inside = (np.abs(mapped[:, 0]) < gauge.width / 2) & (np.abs(mapped[:, 1]) < gauge.length / 2)
+    usable = inside & (clearance > ridge_margin)
+    return np.nonzero(usable)[0], face[usable]
+
+
+def depth_model(gauge: Gauge, x: np.ndarray, face: np.ndarray, rotation: np.ndarray, translation: np.ndarray):
+    """Predicted depths and their Jacobian w.r.t. [delta_F (right perturbation), t]."""
+    n = gauge.normals[face]
+    d = gauge.offsets[face]
+    a = n @ rotation[:, 0]
+    b = n @ rotation[:, 2]
+    c = d - n @ translation
+    z = (c - x * a) / b
+    m = n @ rotation  # normals in F (rows)
+    da = -np.cross(m, E1)  # d(n . R e1)/d delta = -(m x e1)
+    db = -np.cross(m, E3)
+    jac = np.empty((len(x), 6))
+    jac[:, :3] = (-x[:, None] * da) / b[:, None] - (z / b)[:, None] * db
+    jac[:, 3:] = -n / b[:, None]
+    return z, jac
 
 
 def corner_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, noise_std: float,
@@ -67,11 +102,10 @@ def dense_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, nois
     Uses the analytic depth Jacobian of dense.py (one render); depth_jacobian() is the finite-difference
     check of it, which also counts side-wall points.
     """
-    from ..estimation.dense import DenseOptions, depth_model, select_points
 
     points = render_profile(gauge, rotation, translation, profiler=profiler, trace=trace)
     points = points[np.isfinite(points).all(axis=1)]
-    index, face = select_points(gauge, points, rotation, translation, DenseOptions(ridge_margin=1e-6))
+    index, face = select_points(gauge, points, rotation, translation, ridge_margin=1e-6)
     _, g = depth_model(gauge, points[index, 0], face, rotation, translation)
     return ros_covariance(rotation, noise_std ** 2 * np.linalg.inv(g.T @ g))
 

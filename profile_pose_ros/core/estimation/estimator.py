@@ -2,7 +2,9 @@
 
 Every failure returns ok=False with a reason instead of raising: the node publishes nothing for a
 rejected profile and reports the reason in diagnostics. A pose is only returned when the corners fit
-the gauge (reprojection error under a bound, corners inside the gauge's footprint).
+the gauge (reprojection error under a bound, corners inside the gauge's footprint). One source runs
+every stage: the kernels in compiled/, compiled ahead, JIT-compiled or, for debugging, uncompiled
+(compiled/loader.py).
 """
 from __future__ import annotations
 
@@ -11,34 +13,29 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..compiled import codes
+from ..compiled.loader import kernels
 from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
-from .compiled_path import estimate_fast, refine_dense_compiled
-from .dense import refine_dense
-from .plain import NUMPY, Stages, check_solution, estimate_plain
-from .result import EstimatorOptions, PoseEstimate, position_sigma, reason_poorly_determined, ros_covariance
-from .solver import PoseSolution, corner_residuals, solution_cost
+from .pipeline import check_solution, estimate_multistart
+from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_outside,
+                     reason_poorly_determined, reason_reprojection, ros_covariance)
+from .solver import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
+from .stages import detect_corners, detection_reason, option_vector, refine_dense, refine_pose
 
 
-def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | None = None, *,
-                  backend: str = "fast", **overrides) -> PoseEstimate:
+def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | None = None,
+                  **overrides) -> PoseEstimate:
     """Estimate the profiler pose from one profile ((N, 2) [x, z] in metres, NaN = invalid).
 
-    backend "fast" is the compiled path (core/compiled/estimate_kernel.py) used at run time; "numpy" is the readable
-    reference it is tested against. Keyword overrides are any EstimatorOptions or CornerOptions
-    field, e.g. refine=False.
+    Keyword overrides are any EstimatorOptions or CornerOptions field, e.g. refine=False.
     """
     options = options or EstimatorOptions()
     if overrides:
         options = options.with_changes(**overrides)
-    if backend == "fast":
-        estimate = estimate_fast(points, gauge, options)
-    elif backend == "numpy":
-        estimate = estimate_plain(points, gauge, options)
-    else:
-        raise ValueError(f"backend must be 'fast' or 'numpy', got {backend!r}")
+    estimate = _estimate_in_one_call(points, gauge, options)
     if estimate.ok and options.refine and options.refine_model == "dense":
-        estimate = _refine_dense(points, gauge, options, estimate, compiled=backend == "fast")
+        estimate = _refine_dense(points, gauge, options, estimate)
     return _checked_precision(estimate, options)
 
 
@@ -60,13 +57,12 @@ def _rejected(estimate: PoseEstimate, reason: str, **changes) -> PoseEstimate:
                    covariance=np.full((6, 6), np.nan), position_sigma=None, **changes)
 
 
-def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate,
-                  compiled: bool) -> PoseEstimate:
+def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate
+                  ) -> PoseEstimate:
     """Replace the corner solution by the dense one (same checks), keeping the corner results alongside."""
     start = time.perf_counter()
     try:
-        dense_fit = refine_dense_compiled if compiled else refine_dense
-        dense = dense_fit(gauge, points, estimate.R, estimate.t, options.noise_std)
+        dense = refine_dense(gauge, points, estimate.R, estimate.t, options.noise_std)
     except (np.linalg.LinAlgError, ValueError) as exc:
         return _rejected(estimate, f"dense refinement: {exc}")
     solution = PoseSolution(dense.rotation, dense.translation,
@@ -80,6 +76,79 @@ def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, e
                    position_sigma=None)
 
 
+def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptions, error: float) -> str:
+    n = gauge.n_ridges
+    detection = detection_reason(status, info, n, options.corners)
+    if detection is not None:
+        return f"corner detection: {detection}"
+    if status == codes.CF_RANK:
+        return f"closed form: {reason_cf_rank(n, int(info[0]))}"
+    if status == codes.CF_DEGENERATE:
+        return f"closed form: {REASON_CF_DEGENERATE}"
+    if status == codes.SINGULAR:
+        return "refinement: Singular matrix"
+    if status == codes.NOT_FINITE:
+        return REASON_NOT_FINITE
+    if status == codes.REPROJECTION:
+        return reason_reprojection(error, gauge, options)
+    if status == codes.OUTSIDE_FOOTPRINT:
+        return reason_outside(int(info[0]), info[1], info[2], gauge)
+    return f"internal status {status}"
+
+
+def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
+    """The common case in a single compiled call (corners, closed form, refinement, checks); four-ridge
+    gauges and poses the basin search must decide go to the staged pipeline."""
+    if gauge.n_ridges == 4:  # several starting poses (solver.four_ridge_candidates)
+        return estimate_multistart(points, gauge, options)
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 2:
+        return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
+    n = gauge.n_ridges
+    corners = np.empty((n, 2))
+    rot, t, cov = np.empty((3, 3)), np.empty(3), np.empty((6, 6))  # NaN-filled by the kernel unless ok
+    cf_rot, cf_t, cf_res, res = np.empty((3, 3)), np.empty(3), np.empty((n, 2)), np.empty((n, 2))
+    info = np.zeros(4)
+    start = time.perf_counter()
+    try:
+        status, iterations, fit_rms, error, cf_error, sigma = kernels().estimate(
+            points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, option_vector(options), corners, rot, t,
+            cov, cf_rot, cf_t, cf_res, res, info)
+    except np.linalg.LinAlgError as exc:
+        return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
+    timings = {"total": time.perf_counter() - start}
+    if status in (codes.TOO_FEW_POINTS, codes.X_NOT_INCREASING, codes.STEEP_SEGMENT, codes.WRONG_CORNER_COUNT,
+                  codes.CORNER_NOT_BETWEEN, codes.CORNERS_NOT_INCREASING):
+        return PoseEstimate(False, _reason(status, info, gauge, options, error), timings=timings)
+    if status in (codes.CF_RANK, codes.CF_DEGENERATE):
+        return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
+    ok = status == codes.OK
+    if options.search and options.refine and (status in (codes.REPROJECTION, codes.OUTSIDE_FOOTPRINT) or (
+            ok and sigma > options.search_min_sigma)):
+        # poorly determined, or perhaps in a wrong basin: the staged pipeline, whose basin search decides
+        return estimate_multistart(points, gauge, options)
+    return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
+                        corners=corners, reprojection_error=error, covariance=cov,
+                        closed_form=PoseSolution(cf_rot, cf_t, cf_res), refined=options.refine,
+                        iterations=iterations, fit_rms=fit_rms, timings=timings,
+                        position_sigma=sigma if ok else None)
+
+
+def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
+    """Compile (or load from cache) every path before the first real profile; returns seconds taken."""
+    from ..model.poses import sample_pose
+    from ..model.render import render_profile
+
+    start = time.perf_counter()
+    options = options or EstimatorOptions()
+    rotation, translation = sample_pose(gauge, np.random.default_rng(0))
+    profile = render_profile(gauge, rotation, translation)
+    _estimate_in_one_call(profile, gauge, options)
+    _estimate_in_one_call(np.full((10, 2), np.nan), gauge, options)  # a failure path too
+    estimate_multistart(profile, gauge, options)  # the kernels of the n = 4 starts and the basin search
+    return time.perf_counter() - start
+
+
 def pose_nees(estimate: PoseEstimate, rotation: np.ndarray, translation: np.ndarray) -> float:
     """Normalised estimation error squared of an estimate against its own covariance (6 on average if honest)."""
     d = np.concatenate([translation - estimate.t, so3_log(rotation @ estimate.R.T)])
@@ -87,13 +156,13 @@ def pose_nees(estimate: PoseEstimate, rotation: np.ndarray, translation: np.ndar
 
 
 def is_wrong_minimum(points: np.ndarray, gauge: Gauge, estimate: PoseEstimate, rotation: np.ndarray,
-                     translation: np.ndarray, stages: Stages = NUMPY, corner_cov: np.ndarray | None = None) -> bool:
+                     translation: np.ndarray, corner_cov: np.ndarray | None = None) -> bool:
     """True if an accepted estimate is a higher cost minimum than the one refined from the true pose and
     more than one standard deviation (Mahalanobis) from it: the search stopped in the wrong basin."""
     if corner_cov is None:
-        corner_cov = stages.detect(points, gauge.n_ridges).covariance(None)
+        corner_cov = detect_corners(points, gauge.n_ridges).covariance(None)
     at_truth = PoseSolution(rotation, translation, corner_residuals(gauge, estimate.corners, rotation, translation))
-    truth = stages.refine(gauge, estimate.corners, at_truth, corner_cov)
+    truth = refine_pose(gauge, estimate.corners, at_truth, corner_cov)
     found = PoseSolution(estimate.R, estimate.t, corner_residuals(gauge, estimate.corners, estimate.R, estimate.t))
     d = np.concatenate([so3_log(estimate.R.T @ truth.solution.rotation), truth.solution.translation - estimate.t])
     higher = solution_cost(gauge, found, corner_cov, True) > solution_cost(gauge, truth.solution, corner_cov, True)

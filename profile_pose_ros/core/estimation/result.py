@@ -1,7 +1,6 @@
 """What the estimator takes and returns: its options, its result, and the words of its refusals.
 
-The bottom of estimation/: the numpy reference (plain.py), the compiled path (compiled_path.py) and the
-front (estimator.py) all build on it, so none of them imports another sideways.
+Below stages.py, pipeline.py and estimator.py, which all build on it.
 """
 from __future__ import annotations
 

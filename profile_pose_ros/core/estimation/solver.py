@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..compiled.codes import POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS
 from ..model.gauge import Gauge
 from ..model.rotation import nearest_rotation, skew, so3_exp
 
@@ -163,71 +162,6 @@ class Refinement:
     iterations: int
 
 
-def refine(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_covariance: np.ndarray | None,
-           weighted: bool = True, max_iterations: int = 30, polish: bool = True) -> Refinement:
-    """Levenberg-Marquardt on SO(3) x R^3 minimising the (weighted) corner residuals, eq. (15).
-
-    weighted=True uses the inverse covariance of the residuals (maximum likelihood for the corner
-    noise); weighted=False is the paper's plain sum of squares. The returned covariance is the
-    sandwich form, so it stays honest when the weights are not the inverse covariance.
-    """
-    rotation, translation = start.rotation, start.translation
-    r = corner_residuals(gauge, corners, rotation, translation).ravel()
-    have_cov = corner_covariance is not None and corner_covariance.size
-    weight = np.eye(len(r))
-    if weighted and have_cov:
-        weight = np.linalg.inv(residual_covariance(gauge, rotation, corner_covariance))
-    cost = r @ weight @ r
-    damping = 1e-6
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
-        jac = residual_jacobian(gauge, corners, rotation)
-        hessian = jac.T @ weight @ jac
-        gradient = jac.T @ weight @ r
-        step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian)), -gradient)
-        new_rotation = rotation @ so3_exp(step[:3])
-        new_translation = translation + step[3:]
-        new_r = corner_residuals(gauge, corners, new_rotation, new_translation).ravel()
-        new_cost = new_r @ weight @ new_r
-        if new_cost <= cost:
-            converged = cost - new_cost <= POLISH_COST_TOLERANCE * cost
-            rotation, translation, r, cost = new_rotation, new_translation, new_r, new_cost
-            damping = max(damping / 10.0, 1e-12)
-            if converged or np.max(np.abs(step)) < 1e-13:
-                break
-        else:
-            damping *= 10.0
-            if damping > 1e8 or new_cost - cost <= POLISH_COST_TOLERANCE * cost:
-                break  # at the cost's rounding floor: the polish below finishes the job
-    # Polish: LM's damping leaves the weak direction slightly short, and near the minimum the cost can
-    # no longer tell steps apart (micrometre residuals, weights ~1e12). Undamped Gauss-Newton steps
-    # converge to the minimiser itself, accepted unless they raise the cost beyond rounding.
-    for _ in range(POLISH_STEPS if max_iterations and polish else 0):
-        jac = residual_jacobian(gauge, corners, rotation)
-        step = np.linalg.solve(jac.T @ weight @ jac, -(jac.T @ weight @ r))
-        new_rotation = rotation @ so3_exp(step[:3])
-        new_translation = translation + step[3:]
-        new_r = corner_residuals(gauge, corners, new_rotation, new_translation).ravel()
-        new_cost = new_r @ weight @ new_r
-        if new_cost > cost * (1.0 + POLISH_COST_TOLERANCE):
-            break
-        rotation, translation, r, cost = new_rotation, new_translation, new_r, new_cost
-        if np.max(np.abs(step)) < POLISH_STEP_TOLERANCE:
-            break
-    jac = residual_jacobian(gauge, corners, rotation)
-    if have_cov:
-        sigma_r = residual_covariance(gauge, rotation, corner_covariance)
-        if weighted:
-            weight = np.linalg.inv(sigma_r)
-        bread = np.linalg.inv(jac.T @ weight @ jac)
-        covariance = bread @ (jac.T @ weight @ sigma_r @ weight @ jac) @ bread
-    else:
-        dof = max(1, len(r) - 6)
-        covariance = np.linalg.inv(jac.T @ jac) * (r @ r) / dof
-    solution = PoseSolution(rotation, translation, r.reshape(-1, 2))
-    return Refinement(solution, 0.5 * (covariance + covariance.T), iterations)
-
-
 def solution_cost(gauge: Gauge, solution: PoseSolution, corner_covariance: np.ndarray | None, weighted: bool) -> float:
     """The cost refine() minimises, at a solution (so minima from different starts can be compared)."""
     r = solution.residuals.ravel()
@@ -276,8 +210,8 @@ def subset_starts(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
     return starts
 
 
-def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_covariance: np.ndarray | None,
-                  weighted: bool = True, max_iterations: int = 30, refine_fn=refine) -> tuple[Refinement, int]:
+def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_covariance: np.ndarray,
+                  weighted: bool, max_iterations: int, refine_fn) -> tuple[Refinement, int]:
     """The lowest minimum found around a refined pose; returns it and how many starts were tried.
 
     When the pose is poorly determined (a long, curved valley of the cost along the weak mode: tilt of

@@ -1,24 +1,22 @@
-"""The numpy reference pipeline, stage by stage: corners -> closed form(s) -> refinement -> basin search.
+"""The estimator stage by stage: corners -> closed form(s) -> refinement from each start -> basin search.
 
-The compiled path hands it the cases it does not handle itself (four ridges, the basin search), with
-its own kernels as the stages (compiled_path.COMPILED).
+estimate_pose runs the common case (one start, a well determined pose) in a single compiled call and
+hands the rest here: four-ridge gauges (several starts) and poses that need the basin search.
 """
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 
 from ..model.gauge import Gauge
 from ..model.rotation import so3_log
-from .corners import detect_corners
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_outside,
                      reason_reprojection, ros_covariance)
-from .solver import (PoseSolution, Refinement, SolverError, closed_form, four_ridge_candidates, refine,
-                     search_minima, solution_cost)
+from .solver import (PoseSolution, Refinement, SolverError, closed_form, four_ridge_candidates, search_minima,
+                     solution_cost)
+from .stages import detect_corners, refine_pose
 
 
 def check_solution(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, options: EstimatorOptions) -> str:
@@ -53,24 +51,12 @@ def _implausible_cost(dof: int) -> float:
     return float(2.0 * gammainccinv(dof / 2.0, 1e-4))
 
 
-@dataclass(frozen=True)
-class Stages:
-    """The corner detection and refinement estimate_plain() runs: numpy (the reference) by default; the
-    compiled path hands its n = 4 and basin-search cases over with its kernels (compiled_path.COMPILED)."""
-
-    detect: Callable = detect_corners
-    refine: Callable = refine
-
-
-NUMPY = Stages()
-
-
-def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, stages: Stages = NUMPY
-                   ) -> PoseEstimate:
-    """The numpy reference implementation, stage by stage, with per-stage timings."""
+def estimate_multistart(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
+    """Stage by stage, with per-stage timings: every starting pose refined (n = 4 has several), the lowest
+    minimum kept unless a rival fits about as well, and the basin search when the pose is poorly determined."""
     timings = {}
     start = time.perf_counter()
-    found = stages.detect(points, gauge.n_ridges, options.corners)
+    found = detect_corners(points, gauge.n_ridges, options.corners)
     timings["corner_detection"] = time.perf_counter() - start
     if not found.ok:
         return PoseEstimate(False, f"corner detection: {found.reason}", timings=timings)
@@ -88,7 +74,7 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, 
     minima = []
     for candidate in starts:
         try:
-            attempt = stages.refine(gauge, corners, candidate, corner_cov, weighted,
+            attempt = refine_pose(gauge, corners, candidate, corner_cov, weighted,
                                     options.max_iterations if options.refine or len(starts) > 1 else 0)
         except np.linalg.LinAlgError as exc:
             if len(starts) == 1:
@@ -107,7 +93,7 @@ def estimate_plain(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, 
     if needs_search(result, cost, len(corners), weighted, options):
         search_start = time.perf_counter()
         result, search_starts = search_minima(gauge, corners, result, corner_cov, weighted, options.max_iterations,
-                                              stages.refine)
+                                              refine_pose)
         timings["search"] = time.perf_counter() - search_start
     solution, refined, iterations = initial, False, 0
     if options.refine:
