@@ -38,7 +38,7 @@ def test_refinement_beats_closed_form_at_5um(gauge, rng, weighting):
     for _ in range(150):
         rotation, t = sample_pose(gauge, rng)
         estimate = estimate_pose(render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), gauge,
-                                 weighting=weighting)
+                                 refine_weighting=weighting)
         assert estimate.ok, estimate.reason
         cf = estimate.closed_form
         rows["cf"].append([cf.reprojection_error, *pose_error(cf.rotation, cf.translation, rotation, t)])
@@ -77,8 +77,8 @@ def test_four_ridge_gauges_are_solved_from_the_null_space_candidates():
 
 
 def test_options_validate_and_override():
-    with pytest.raises(ValueError, match="weighting"):
-        EstimatorOptions(weighting="magic")
+    with pytest.raises(ValueError, match="refine_weighting"):
+        EstimatorOptions(refine_weighting="magic")
     options = EstimatorOptions().with_changes(rdp_epsilon=1e-3, refine=False)
     assert options.corners.rdp_epsilon == 1e-3 and options.refine is False
 
@@ -146,7 +146,7 @@ def test_two_equally_good_poses_centimetres_apart_are_rejected_as_ambiguous():
         points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
     estimate = estimate_pose(points, gauge, max_reprojection_error=1.0)
     assert not estimate.ok and "ambiguous" in estimate.reason and "mm apart" in estimate.reason
-    both = estimate_pose(points, gauge, max_reprojection_error=1.0, weighting="uniform")  # rule needs chi-square
+    both = estimate_pose(points, gauge, max_reprojection_error=1.0, refine_weighting="uniform")  # rule needs chi-square
     assert both.ok and np.linalg.norm(both.t - t) > 0.01  # the rule is what stood between it and a 5 cm error
 
 

@@ -46,7 +46,7 @@ def test_compiled_and_uncompiled_runs_of_the_one_source_agree(gauge, rng):
     cases = [(render_profile(gauge, *sample_pose(gauge, rng), noise_std=noise, spike_fraction=spikes, rng=rng),
               gauge, options)
              for noise, spikes in [(5e-6, 0.0), (20e-6, 0.0), (5e-6, 0.01)]
-             for options in [{}, dict(refine_model="dense"), dict(weighting="uniform"),
+             for options in [{}, dict(refine_model="dense"), dict(refine_weighting="uniform"),
                              dict(refine=False, max_reprojection_error=2e-3)]]
     cases += [(points, gauge, {}) for points in failure_cases(gauge, rng)]
     for n in (4, 7):
@@ -97,7 +97,7 @@ def test_compiled_detection_equals_the_numpy_baseline_s(rng):
 
     for n in (4, 5, 7, 10):
         gauge = random_gauge(n, rng)
-        for options in (CornerOptions(), CornerOptions(robust=False)):
+        for options in (CornerOptions(), CornerOptions(robust_line_fit=False)):
             for noise, spikes in [(5e-6, 0.0), (5e-6, 0.01), (50e-6, 0.0)]:
                 rotation, t = sample_pose(gauge, rng)
                 points = render_profile(gauge, rotation, t, noise_std=noise, spike_fraction=spikes, rng=rng)

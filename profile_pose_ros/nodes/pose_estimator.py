@@ -96,15 +96,11 @@ PARAMETERS = [
     *REALTIME_PARAMETERS,
 ]
 
-_OPTION_OF_PARAMETER = {
-    "refine": "refine", "refine_weighting": "weighting", "refine_model": "refine_model",
-    "noise_std": "noise_std", "rdp_epsilon": "rdp_epsilon",
-    "trim_fraction": "trim_fraction", "min_segment_points": "min_segment_points",
-    "min_corner_angle": "min_corner_angle", "max_face_angle": "max_face_angle",
-    "max_corner_offset": "max_corner_offset", "robust_line_fit": "robust",
-    "max_reprojection_error": "max_reprojection_error", "basin_search": "search",
-    "basin_search_min_sigma": "search_min_sigma", "max_position_sigma": "max_position_sigma",
-}
+# the parameters that are EstimatorOptions (or CornerOptions) fields, under the same names
+ESTIMATOR_PARAMETERS = ("refine", "refine_weighting", "refine_model", "noise_std", "rdp_epsilon", "trim_fraction",
+                        "min_segment_points", "min_corner_angle", "max_face_angle", "max_corner_offset",
+                        "robust_line_fit", "max_reprojection_error", "basin_search", "basin_search_min_sigma",
+                        "max_position_sigma")
 
 
 def options_from(values: dict) -> EstimatorOptions:
@@ -112,7 +108,7 @@ def options_from(values: dict) -> EstimatorOptions:
     hint = values.get("orientation_hint", HALF_TURN_X)
     if len(hint) != 4 or not any(hint) or not all(math.isfinite(v) for v in hint):
         raise ValueError(f"orientation_hint must be a quaternion x y z w, not {list(hint)}")
-    changes = {option: values[name] for name, option in _OPTION_OF_PARAMETER.items() if name in values}
+    changes = {name: values[name] for name in ESTIMATOR_PARAMETERS if name in values}
     return EstimatorOptions().with_changes(**changes)
 
 

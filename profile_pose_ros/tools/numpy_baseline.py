@@ -65,7 +65,7 @@ def fit_line(points: np.ndarray, first: int, last: int, options: CornerOptions) 
     x, z = seg[:, 0], seg[:, 1]
     keep = np.ones(len(seg), dtype=bool)
     fit = LineFit(first, last)
-    passes = ROBUST_PASSES if options.robust else 1
+    passes = ROBUST_PASSES if options.robust_line_fit else 1
     for iteration in range(passes):
         xs, zs = x[keep], z[keep]
         x_mean = xs.mean()

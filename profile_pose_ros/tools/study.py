@@ -37,7 +37,8 @@ FAIL_UM = 1000.0  # the paper's '-' rule
 SPIKES = 0.01  # share of profile points replaced by spikes in the outlier study
 SPIKE_RANGE = (2e-4, 2e-3)  # m, spike magnitude (either sign)
 # plain fits, eq. 15, one start, every refined pose kept
-PAPER_PIPELINE = {"robust": False, "weighting": "uniform", "search": False, "max_position_sigma": np.inf}
+PAPER_PIPELINE = {"robust_line_fit": False, "refine_weighting": "uniform", "basin_search": False,
+                  "max_position_sigma": np.inf}
 
 
 def error_row(gauge, estimate, rotation, t, n: int) -> list[float]:
@@ -82,7 +83,8 @@ def gauge_trial(task: tuple) -> dict:
         rotation, t = sample_pose(gauge, rng, trace=trace_depth_fast)
         for noise in noises:
             points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, trace=trace_depth_fast)
-            paper = estimate_pose(points, gauge, max_reprojection_error=1.0, search=False, max_position_sigma=np.inf)
+            paper = estimate_pose(points, gauge, max_reprojection_error=1.0, basin_search=False,
+                                  max_position_sigma=np.inf)
             row = error_row(gauge, paper, rotation, t, n)
             rows[noise].append(row if noise > 0 else row[:6] + [np.nan])
             if noise != TABLE_NOISE:

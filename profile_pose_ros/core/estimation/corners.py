@@ -27,7 +27,7 @@ class CornerOptions:
     min_corner_angle: float = math.radians(5.0)  # rad; neighbours closer in direction are one face
     max_face_angle: float = math.radians(70.0)  # rad from F's x axis; steeper end segments are walls
     max_corner_offset: float = 1e-3  # m; a corner must lie between the two faces it joins (+- this)
-    robust: bool = True  # reject outliers in each line fit (spikes)
+    robust_line_fit: bool = True  # reject outliers in each line fit (spikes)
     outlier_threshold: float = 4.0  # in robust standard deviations
     min_outlier_floor: float = 1e-6  # m; never reject residuals below this (noise-free profiles)
 

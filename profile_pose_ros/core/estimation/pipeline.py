@@ -36,9 +36,9 @@ def check_solution(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, op
 
 def needs_search(result: Refinement, cost: float, n_corners: int, weighted: bool, options: EstimatorOptions) -> bool:
     """Search when the pose is poorly determined, or (weighted) when its cost is implausible for the noise."""
-    if not (options.search and options.refine):
+    if not (options.basin_search and options.refine):
         return False
-    if position_sigma(result.covariance[3:, 3:]) > options.search_min_sigma:
+    if position_sigma(result.covariance[3:, 3:]) > options.basin_search_min_sigma:
         return True
     return weighted and cost > _implausible_cost(max(2 * n_corners - 6, 1))
 
@@ -69,7 +69,7 @@ def estimate_multistart(points: np.ndarray, gauge: Gauge, options: EstimatorOpti
     timings["closed_form"] = time.perf_counter() - start
 
     corner_cov = found.covariance(options.noise_std or None)
-    weighted = options.weighting == "corner_covariance"
+    weighted = options.refine_weighting == "corner_covariance"
     start = time.perf_counter()
     minima = []
     for candidate in starts:

@@ -22,22 +22,22 @@ REFINE_MODELS = ("corners", "dense")
 class EstimatorOptions:
     corners: CornerOptions = CornerOptions()
     refine: bool = True
-    weighting: str = "corner_covariance"  # or "uniform": the paper's plain eq. (15)
+    refine_weighting: str = "corner_covariance"  # or "uniform": the paper's plain eq. (15)
     refine_model: str = "corners"  # or "dense": then also fit every point's depth (core/estimation/dense.py)
     noise_std: float = 0.0  # m; 0 = estimate the depth noise from each face fit
     max_reprojection_error: float = 1e-4  # m; reject poses whose corners miss their ridges by more
     footprint_margin: float = 2e-3  # m; mapped corners must lie this close to the gauge's footprint
     max_iterations: int = 30
-    search: bool = True  # look for a lower minimum around a poorly determined pose (solver.search_minima)
-    search_min_sigma: float = 2.5e-4  # m; search when the refined position's largest std exceeds this
+    basin_search: bool = True  # look for a lower minimum around a poorly determined pose (solver.search_minima)
+    basin_search_min_sigma: float = 2.5e-4  # m; search when the refined position's largest std exceeds this
     # m; reject a pose whose position's largest std exceeds this: the profile determines it so poorly that its
     # linearised covariance understates the error (docs/estimator.md, "Covariance"), so nothing downstream
     # could weight it right. The shipped gauges are near 0.02-0.2 mm at 5 um noise.
     max_position_sigma: float = 5e-4
 
     def __post_init__(self) -> None:
-        if self.weighting not in WEIGHTINGS:
-            raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
+        if self.refine_weighting not in WEIGHTINGS:
+            raise ValueError(f"refine_weighting must be one of {WEIGHTINGS}, got {self.refine_weighting!r}")
         if self.refine_model not in REFINE_MODELS:
             raise ValueError(f"refine_model must be one of {REFINE_MODELS}, got {self.refine_model!r}")
 

@@ -47,12 +47,12 @@ def _packed_options(options: EstimatorOptions) -> np.ndarray:
     v[codes.O_MINANGLE] = c.min_corner_angle
     v[codes.O_MAXFACE] = c.max_face_angle
     v[codes.O_MAXOFF] = c.max_corner_offset
-    v[codes.O_ROBUST] = 1.0 if c.robust else 0.0
+    v[codes.O_ROBUST] = 1.0 if c.robust_line_fit else 0.0
     v[codes.O_THR] = c.outlier_threshold
     v[codes.O_FLOOR] = c.min_outlier_floor
     v[codes.O_NOISE] = options.noise_std
     v[codes.O_SIGFLOOR] = 1e-7  # same floor as CornerResult.covariance
-    v[codes.O_WEIGHTED] = 1.0 if options.weighting == "corner_covariance" else 0.0
+    v[codes.O_WEIGHTED] = 1.0 if options.refine_weighting == "corner_covariance" else 0.0
     v[codes.O_REFINE] = 1.0 if options.refine else 0.0
     v[codes.O_MAXIT] = options.max_iterations
     v[codes.O_MAXREPROJ] = options.max_reprojection_error
