@@ -8,7 +8,11 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import Gauge
+from profile_pose_ros.nodes.process_tuning import LOOP_SWITCH_INTERVAL_S, shorten_switch_interval
 from profile_pose_ros.tools.processes import fresh_domain_id
+
+# Nodes under test run in this process: tuned as their own processes are (run_node's switch_interval)
+shorten_switch_interval(LOOP_SWITCH_INTERVAL_S)
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER_GAUGE = ROOT / "config" / "gauge_paper_n5.yaml"
@@ -72,7 +76,7 @@ class RosHarness:
                 return True
             if action is not None:
                 action()
-            for node in self.nodes:  # nodes that take their input directly (nodes/fast_input.py)
+            for node in self.nodes:  # nodes that take their input directly (nodes/direct_input.py)
                 if hasattr(node, "pump"):
                     node.pump(0.0)
             self.executor.spin_once(timeout_sec=0.02)

@@ -116,7 +116,7 @@ def test_a_killed_bringup_leaves_no_node_behind(ros, tmp_path) -> None:
 HANGING_NODE = """
 import sys, time
 from rclpy.node import Node
-from profile_pose_ros.nodes import run
+from profile_pose_ros.nodes import process_tuning, run
 
 class Hangs(Node):
     def __init__(self):
@@ -127,7 +127,7 @@ class Hangs(Node):
         while True:  # a teardown that never returns
             time.sleep(0.01)
 
-run.SHUTDOWN_GRACE_S = 1.0
+process_tuning.SHUTDOWN_GRACE_S = 1.0
 sys.exit(run.run_node(Hangs, "hangs"))
 """
 

@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from profile_pose_ros.nodes.realtime import set_realtime
+from profile_pose_ros.nodes.process_tuning import set_realtime
 from profile_pose_ros.tools.graph import Graph
 
 SCHED_FIFO, SCHED_OTHER = 1, 0
 CHILD = """
 import os, threading
-from profile_pose_ros.nodes.realtime import set_realtime
+from profile_pose_ros.nodes.process_tuning import set_realtime
 worker = threading.Thread(target=threading.Event().wait, daemon=True)  # a thread started before
 worker.start()
 print(set_realtime(7))

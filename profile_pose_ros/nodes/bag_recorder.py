@@ -25,7 +25,7 @@ from ..bags.writer import COMPRESSIONS, STORAGES
 from ..core.timing.sequence_gaps import SequenceGaps
 from .bag_common import message_class, subscription_qos, to_bag_qos
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
-from .fast_input import FastInput, ServedDirectly, spin
+from .direct_input import DirectInput, ServedDirectly, spin, take_all
 from .parameters import Param, declare_all
 from .run import run_node
 
@@ -73,10 +73,10 @@ class BagRecorderNode(Node):
         self.flushed = 0  # messages on disk as of the last flush: what a kill cannot take
         self.last_error = ""
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        # Messages are taken straight from their subscriptions (fast_input.py): through the executor, which
+        # Messages are taken straight from their subscriptions (direct_input.py): through the executor, which
         # rebuilds its wait set over every entity for each message, that was half the recorder's CPU.
         self.served_here = ServedDirectly()
-        self.fast_input = FastInput(None, self.context)
+        self.direct_input = DirectInput(None, self.context)
         self.create_timer(v["discovery_period"], self._discover)
         self.create_timer(v["flush_period"], self._flush)
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
@@ -111,7 +111,7 @@ class BagRecorderNode(Node):
                                                     callback_group=self.served_here)
             self.subscriptions_by_topic[topic] = subscription
             self._check_writers(topic)
-            self.fast_input.add(subscription, on_message, with_info=True)
+            self.direct_input.add(subscription, on_message, with_info=True)
             self.get_logger().info(f"recording {topic} ({types[0]})")
 
     def _refuse(self, topic: str, reason: str) -> None:
@@ -166,17 +166,16 @@ class BagRecorderNode(Node):
                                                       str(Path(self.writer.path).name), level, message, values))
 
     def pump(self, timeout_sec: float = 0.0) -> int:
-        """Write the messages queued (see fast_input.py); spin() or a test harness calls this."""
-        return self.fast_input.pump(timeout_sec)
+        """Write the messages queued (see direct_input.py); spin() or a test harness calls this."""
+        return self.direct_input.pump(timeout_sec)
 
     def drain(self) -> int:
         """Write what the subscriptions still hold (not yet taken)."""
         drained = 0
         for topic, subscription in self.subscriptions_by_topic.items():
-            with subscription.handle:
-                while (taken := subscription.handle.take_message(subscription.msg_type, True)) is not None:
-                    self._on_message(topic, *taken)
-                    drained += 1
+            for message, info in take_all(subscription):
+                self._on_message(topic, message, info)
+                drained += 1
         return drained
 
     def destroy_node(self) -> None:
@@ -189,7 +188,7 @@ class BagRecorderNode(Node):
 
 def main(args=None) -> int:
     return run_node(BagRecorderNode, NODE_NAME, args, startup_errors=(BagError, ValueError),
-                    spin=lambda executor, node, stop: spin(executor, node.fast_input, stop))
+                    spin=lambda executor, node, stop: spin(executor, node.direct_input, stop))
 
 
 if __name__ == "__main__":

@@ -20,16 +20,17 @@ import sys
 import time
 
 from ..core.model.gauge import GaugeError
-from .fast_input import serve_ready
+from .direct_input import serve_ready
 from .local_topics import LocalTopics
-from .motoplus_bridge import GIL_SWITCH_INTERVAL, MotoPlusBridgeNode
+from .motoplus_bridge import MotoPlusBridgeNode
 from .pd_compensator import PdCompensatorNode
 from .pose_estimator import PoseEstimatorNode
+from .process_tuning import LOOP_SWITCH_INTERVAL_S
 from .profiler_driver import ProfilerDriverNode
 from .run import StopRequest, run_nodes
 
 NAME = "cell_container"
-HOUSEKEEPING_PERIOD = 0.05  # s: every node's timers, services and parameter requests (fast_input.py)
+HOUSEKEEPING_PERIOD = 0.05  # s: every node's timers, services and parameter requests (direct_input.py)
 
 
 def spin_composed(executor, nodes: list, stop: StopRequest) -> None:
@@ -39,7 +40,7 @@ def spin_composed(executor, nodes: list, stop: StopRequest) -> None:
     compensator = next(node for node in nodes if isinstance(node, PdCompensatorNode))
     due = time.monotonic()
     while executor.context.ok() and not stop.is_set():
-        watchdog_in = compensator.fast_input.tick_due - time.monotonic()
+        watchdog_in = compensator.direct_input.tick_due - time.monotonic()
         bridge.pump(max(0.0, min(due - time.monotonic(), watchdog_in)))
         compensator.pump(0.0)  # no inputs of its own here: runs the watchdog if due
         if time.monotonic() >= due:
@@ -48,14 +49,14 @@ def spin_composed(executor, nodes: list, stop: StopRequest) -> None:
 
 
 def main(args=None) -> int:
-    sys.setswitchinterval(GIL_SWITCH_INTERVAL)
     local = LocalTopics()
     # Takers first, so that the driver's first profile finds its way; the bridge first of all, so that it
     # is also the first destroyed (STOP), then the driver (no more profiles), then the rest.
     factories = [lambda: MotoPlusBridgeNode(local=local), lambda: PdCompensatorNode(local=local),
                  lambda: PoseEstimatorNode(local=local), lambda: ProfilerDriverNode(local=local)]
     return run_nodes(factories, NAME, args, startup_errors=(ValueError, OSError, GaugeError), spin=spin_composed,
-                     destroy_order=lambda nodes: [nodes[0], nodes[3], nodes[2], nodes[1]])
+                     destroy_order=lambda nodes: [nodes[0], nodes[3], nodes[2], nodes[1]],
+                     switch_interval=LOOP_SWITCH_INTERVAL_S)
 
 
 if __name__ == "__main__":

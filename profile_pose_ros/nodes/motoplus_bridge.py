@@ -31,14 +31,13 @@ from ..core.wire.pose_cdr import CdrFormatError, decode_twist_cdr, encode_pose_c
 from ..core.model.rotation import so3_exp
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, RefusalCounter, diagnostic_array
-from .fast_input import FastInput, ServedDirectly, spin
+from .direct_input import DirectInput, ServedDirectly, spin
 from .local_topics import LOOP_INPUT_QOS, LocalTopics
 from .parameters import Param, declare_all, updated
-from .realtime import REALTIME_PARAMETERS
+from .process_tuning import LOOP_SWITCH_INTERVAL_S, REALTIME_PARAMETERS
 from .run import run_node
 
 NODE_NAME = "motoplus_bridge"
-GIL_SWITCH_INTERVAL = 1e-3  # s (CPython's default is 5 ms): the socket thread answers each STATE promptly
 FRAMES = {"base": mp.FRAME_BASE, "robot": mp.FRAME_ROBOT, "tool": mp.FRAME_TOOL, "user": mp.FRAME_USER}
 
 PARAMETERS = [
@@ -88,7 +87,6 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         super().__init__(NODE_NAME, **kwargs)
         # Process-wide: whatever else runs in this process (an executor busy with corrections, a test
         # harness), the socket thread must get the GIL within a fraction of the period.
-        sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL))
         v = self.values = declare_all(self, PARAMETERS)
         self.limits = limits_from(v)
         self._lock = threading.Lock()
@@ -103,19 +101,19 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self.stale_periods = 0
         self.state_pub = self.create_publisher(PoseStamped, "robot_state", 10)
         self.increment_pub = self.create_publisher(TwistStamped, "~/increment", 100)
-        # Corrections and the sent-increment note are served straight from their wait set (fast_input.py):
+        # Corrections and the sent-increment note are served straight from their wait set (direct_input.py):
         # the socket thread is waiting for each correction, and through the executor each waited behind its
         # per-wake-up bookkeeping, about a millisecond here.
         direct = ServedDirectly()
         self._sent_guard = self.create_guard_condition(self._publish_increments, callback_group=direct)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.fast_input = FastInput(None, self.context, guard=self._sent_guard)
+        self.direct_input = DirectInput(None, self.context, guard=self._sent_guard)
         if local is not None:
             local.take(self.resolve_topic_name("correction"), self._on_correction)
         else:
             corrections = self.create_subscription(TwistStamped, "correction", self._on_correction, LOOP_INPUT_QOS,
                                                    callback_group=direct, raw=True)  # read by core/wire/pose_cdr.py
-            self.fast_input.add(corrections, self._on_correction)
+            self.direct_input.add(corrections, self._on_correction)
         self.create_service(Trigger, "~/start", self._on_start)
         self.create_service(Trigger, "~/stop", self._on_stop)
         logger = self.get_logger()
@@ -218,8 +216,8 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
                                                self.values["base_frame"]))
 
     def pump(self, timeout_sec: float = 0.0) -> int:
-        """Handle queued corrections and sent increments (see fast_input.py); spin() or a test harness calls this."""
-        return self.fast_input.pump(timeout_sec)
+        """Handle queued corrections and sent increments (see direct_input.py); spin() or a test harness calls this."""
+        return self.direct_input.pump(timeout_sec)
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         """max_age, answer_wait, base_frame at run time (ranges checked by their descriptors; the rest is
@@ -288,7 +286,8 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
 
 def main(args=None) -> int:
     return run_node(MotoPlusBridgeNode, NODE_NAME, args, startup_errors=(ValueError,),
-                    spin=lambda executor, node, stop: spin(executor, node.fast_input, stop))
+                    spin=lambda executor, node, stop: spin(executor, node.direct_input, stop),
+                    switch_interval=LOOP_SWITCH_INTERVAL_S)
 
 
 if __name__ == "__main__":

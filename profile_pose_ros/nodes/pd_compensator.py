@@ -32,11 +32,11 @@ from ..core.control.modal_control import ModalController, ModalDesign
 from ..core.wire.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
 from ..core.model.rotation import rotation_from_quaternion_xyzw
 from .diagnostics import OK, WARN, RefusalCounter, diagnostic_array
-from .fast_input import FastInput, ServedDirectly, spin
+from .direct_input import DirectInput, ServedDirectly, spin
 from .local_topics import LOOP_INPUT_QOS, LocalTopics, LoopOutput
 from .messages import rotation_translation
 from .parameters import Param, declare_all, updated
-from .realtime import REALTIME_PARAMETERS
+from .process_tuning import REALTIME_PARAMETERS
 from .run import run_node
 from .scene_messages import TF_STATIC_QOS, static_transform
 
@@ -171,23 +171,23 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.tf_static_pub = self.create_publisher(TFMessage, "/tf_static", TF_STATIC_QOS)
         self._publish_gauge_place()
-        # Poses are taken straight from their subscription (fast_input.py): through the executor each one
+        # Poses are taken straight from their subscription (direct_input.py): through the executor each one
         # waited behind its per-wake-up bookkeeping and the 100 Hz watchdog, about a millisecond per hop here.
         # ... and serialized: read with struct, corrections written the same way (core/wire/pose_cdr.py)
-        self.fast_input = FastInput(None, self.context, tick=self._watchdog)
+        self.direct_input = DirectInput(None, self.context, tick=self._watchdog)
         if local is not None:
             local.take(self.resolve_topic_name("pose_with_covariance"), self._on_pose)
         else:
             pose_sub = self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose,
                                                 LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
-            self.fast_input.add(pose_sub, self._on_pose)
+            self.direct_input.add(pose_sub, self._on_pose)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
         self.latency = LatencyWindow("trigger_to_correction_ms")  # the pose's stamp -> its correction published
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
 
     def pump(self, timeout_sec: float = 0.0) -> int:
-        """Handle queued poses (see fast_input.py); spin() or a test harness calls this."""
-        return self.fast_input.pump(timeout_sec)
+        """Handle queued poses (see direct_input.py); spin() or a test harness calls this."""
+        return self.direct_input.pump(timeout_sec)
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         try:
@@ -367,7 +367,7 @@ class PdCompensatorNode(RefusalCounter, Node):
 
 def main(args=None) -> int:
     return run_node(PdCompensatorNode, NODE_NAME, args, startup_errors=(ValueError,),
-                    spin=lambda executor, node, stop: spin(executor, node.fast_input, stop))
+                    spin=lambda executor, node, stop: spin(executor, node.direct_input, stop))
 
 
 if __name__ == "__main__":

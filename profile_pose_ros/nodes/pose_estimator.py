@@ -16,7 +16,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
@@ -36,11 +35,11 @@ from ..core.model.scene import gauge_triangles, profile_in_gauge
 from ..core.timing.sequence_gaps import SequenceGaps
 from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
-from .fast_input import FastInput, ServedDirectly, spin
+from .direct_input import DirectInput, ServedDirectly, on_message_lost, spin
 from .local_topics import LocalTopics, LoopOutput, profile_input_qos
 from .messages import PoseMessagePair, cdr_stamp_ns
 from .parameters import Param, declare_all, updated
-from .realtime import REALTIME_PARAMETERS
+from .process_tuning import REALTIME_PARAMETERS
 from .run import run_node
 from .scene_messages import MARKER_QOS, TF_QOS, SceneMarkers, transform_stamped
 
@@ -177,7 +176,7 @@ class PoseEstimatorNode(Node):
         self.gaps = SequenceGaps()  # profiles never taken: overwritten in the queue, or lost on the way
         self.stats_lock = threading.Lock()  # callbacks may run on other executors' threads
         self.window = self._new_window(time.monotonic())
-        self.fast_input = FastInput(None, self.context)
+        self.direct_input = DirectInput(None, self.context)
         if local is not None:
             local.take(self.resolve_topic_name("profile"), self._on_profile)
         else:
@@ -202,14 +201,12 @@ class PoseEstimatorNode(Node):
             profile_input_qos(self.values["queue_depth"]),
             callback_group=ServedDirectly(), raw=True,  # serialized: decode_profile_cdr reads it in place
             event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
-        for handler in SubscriptionEventCallbacks(message_lost=self._on_lost).create_event_handlers(
-                MutuallyExclusiveCallbackGroup(), self.profile_sub.handle, self.profile_sub.topic_name):
-            self.add_waitable(handler)
-        self.fast_input.add(self.profile_sub, self._on_profile, with_info=True)
+        on_message_lost(self, self.profile_sub, self._on_lost)
+        self.direct_input.add(self.profile_sub, self._on_profile, with_info=True)
 
     def pump(self, timeout_sec: float = 0.0) -> int:
-        """Handle queued profiles (see fast_input.py); spin() or a test harness calls this."""
-        return self.fast_input.pump(timeout_sec)
+        """Handle queued profiles (see direct_input.py); spin() or a test harness calls this."""
+        return self.direct_input.pump(timeout_sec)
 
     # ------------------------------------------------------------------ parameters
     def _on_set_parameters(self, parameters) -> SetParametersResult:
@@ -233,7 +230,7 @@ class PoseEstimatorNode(Node):
             self.lost_in_transport += info.total_count_change
 
     def _on_profile(self, serialized: bytes, info: dict | None = None) -> None:
-        """One profile (a serialized PointCloud2) and rmw's message info, taken by FastInput."""
+        """One profile (a serialized PointCloud2) and rmw's message info, taken by DirectInput."""
         start = time.perf_counter()
         cpu_start = time.thread_time()
         missed = self.gaps.update(info.get("publication_sequence_number")) if info else 0
@@ -338,7 +335,7 @@ class PoseEstimatorNode(Node):
 
 def main(args=None) -> int:
     return run_node(PoseEstimatorNode, NODE_NAME, args, startup_errors=(GaugeError,),
-                    spin=lambda executor, node, stop: spin(executor, node.fast_input, stop))
+                    spin=lambda executor, node, stop: spin(executor, node.direct_input, stop))
 
 
 if __name__ == "__main__":

@@ -24,13 +24,12 @@ from ..devices.trigger_link import TriggerLink
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .local_topics import LocalTopics, LoopOutput
 from .parameters import Param, declare_all
-from .realtime import REALTIME_PARAMETERS
+from .process_tuning import LOOP_SWITCH_INTERVAL_S, REALTIME_PARAMETERS
 from .run import run_node
 
 NODE_NAME = "profiler_driver"
 BACKENDS = ("sim", "ljx")
 
-GIL_SWITCH_INTERVAL = 1e-3  # s; CPython's default is 5 ms
 
 PARAMETERS = [
     Param("backend", "sim", "Profiler backend: 'sim' (sim_cell's TCP protocol) or 'ljx' (Keyence LJ-X8000 "
@@ -187,8 +186,8 @@ class ProfilerDriverNode(Node):
 
 
 def main(args=None) -> int:
-    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # the serial thread timestamps lines (unless the kernel does)
-    return run_node(ProfilerDriverNode, NODE_NAME, args, startup_errors=(ValueError, OSError))
+    return run_node(ProfilerDriverNode, NODE_NAME, args, startup_errors=(ValueError, OSError),
+                    switch_interval=LOOP_SWITCH_INTERVAL_S)
 
 
 if __name__ == "__main__":

@@ -2,8 +2,6 @@
 not a traceback), spin until Ctrl-C or shutdown, and always destroy the node and shut rclpy down."""
 from __future__ import annotations
 
-import faulthandler
-import gc
 import signal
 import sys
 from typing import Callable
@@ -13,10 +11,8 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from .realtime import realtime_from_parameters
-
-
-SHUTDOWN_GRACE_S = 10.0  # from the stop request to the process gone, whatever hangs
+from .process_tuning import (exit_if_shutdown_hangs, freeze_startup_heap, realtime_from_parameters,
+                             shorten_switch_interval)
 
 
 class StopRequest:
@@ -41,21 +37,27 @@ class StopRequest:
 
 def run_node(factory: Callable[[], Node], name: str, args=None,
              startup_errors: tuple[type[BaseException], ...] = (ValueError,),
-             spin: Callable[[SingleThreadedExecutor, Node, StopRequest], None] | None = None) -> int:
+             spin: Callable[[SingleThreadedExecutor, Node, StopRequest], None] | None = None,
+             switch_interval: float | None = None) -> int:
     """Ctrl-C and SIGTERM (a process manager's stop) only ask the spin loop to end (`spin` gets that
     event too), so no callback is cut short and destroy_node() runs whole with a live context: the
     bridge's STOP, the recorder draining its queues and closing its bag."""
     return run_nodes([factory], name, args, startup_errors,
-                     None if spin is None else lambda executor, nodes, stop: spin(executor, nodes[0], stop))
+                     None if spin is None else lambda executor, nodes, stop: spin(executor, nodes[0], stop),
+                     switch_interval=switch_interval)
 
 
 def run_nodes(factories: list[Callable[[], Node]], name: str, args=None,
               startup_errors: tuple[type[BaseException], ...] = (ValueError,),
               spin: Callable[[SingleThreadedExecutor, list[Node], StopRequest], None] | None = None,
-              destroy_order: Callable[[list[Node]], list[Node]] = lambda nodes: nodes) -> int:
+              destroy_order: Callable[[list[Node]], list[Node]] = lambda nodes: nodes,
+              switch_interval: float | None = None) -> int:
     """run_node for several nodes in one process (cell_container): built in the given order (a node that
-    fails to start takes down those built before it), one executor, destroyed in `destroy_order`."""
+    fails to start takes down those built before it), one executor, destroyed in `destroy_order`.
+    switch_interval: the GIL's, for a process whose threads have deadlines (process_tuning.py)."""
     stop = StopRequest().install()
+    if switch_interval is not None:
+        shorten_switch_interval(switch_interval)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     nodes: list[Node] = []
     try:
@@ -67,11 +69,7 @@ def run_nodes(factories: list[Callable[[], Node]], name: str, args=None,
             node.destroy_node()
         rclpy.try_shutdown()
         return 1
-    # What start-up built (modules, compiled kernels, rclpy's types: ~10^5 objects) lives as long as the
-    # process; frozen, the collector never walks it again. A full collection over it took 37 ms here,
-    # tens of profiles at 1 kHz; what the node allocates from now on is collected as usual.
-    gc.collect()
-    gc.freeze()
+    freeze_startup_heap()
     scheduling = realtime_from_parameters(nodes)  # last: the DDS and device threads exist by now
     if scheduling is not None:
         for node in nodes:
@@ -90,14 +88,9 @@ def run_nodes(factories: list[Callable[[], Node]], name: str, args=None,
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        # Seen once (2026-12-02, all five nodes stopping at once when their bringup was SIGKILLed): rcl's
-        # node teardown spun for minutes at 100 % CPU holding the GIL. faulthandler's watchdog is a C thread:
-        # past the grace it prints where the process hung (to the log) and exits, so no node outlives its
-        # cell. destroy_node() has done what matters by then (the bridge's STOP, the bag closed).
-        faulthandler.dump_traceback_later(SHUTDOWN_GRACE_S, exit=True)
-        executor.shutdown()
-        for node in destroy_order(nodes):
-            node.destroy_node()
-        rclpy.try_shutdown()
-        faulthandler.cancel_dump_traceback_later()
+        with exit_if_shutdown_hangs():
+            executor.shutdown()
+            for node in destroy_order(nodes):
+                node.destroy_node()
+            rclpy.try_shutdown()
     return 0

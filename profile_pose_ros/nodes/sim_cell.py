@@ -27,12 +27,12 @@ from ..sim.trigger_mcu import McuFaults, TriggerMcu
 from .diagnostics import OK, WARN, diagnostic_array
 from .messages import pose_stamped, twist_stamped
 from .parameters import Param, declare_all, updated
+from .process_tuning import SIM_SWITCH_INTERVAL_S
 from .run import run_node
 
 NODE_NAME = "sim_cell"
 DEFAULT_POSE = [0.0, 0.0, 0.45, math.pi, 0.0, 0.0]  # looking straight down from 0.45 m (F z = -G z)
 
-GIL_SWITCH_INTERVAL = 2e-4  # s; CPython's default is 5 ms
 
 PARAMETERS = [
     Param("gauge_file", "", "Gauge YAML; empty: the shipped config/gauge_paper_n5.yaml.", read_only=True),
@@ -246,8 +246,8 @@ class SimCellNode(Node):
 
 
 def main(args=None) -> int:
-    sys.setswitchinterval(GIL_SWITCH_INTERVAL)  # the device threads must meet their deadlines while the clock thread renders
-    return run_node(SimCellNode, NODE_NAME, args, startup_errors=(GaugeError, ValueError, OSError))
+    return run_node(SimCellNode, NODE_NAME, args, startup_errors=(GaugeError, ValueError, OSError),
+                    switch_interval=SIM_SWITCH_INTERVAL_S)
 
 
 if __name__ == "__main__":

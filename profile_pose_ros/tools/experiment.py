@@ -147,7 +147,7 @@ class Experiment:
         profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there;
         gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one);
         estimator, compensator: parameters for those nodes beyond the defaults; realtime_priority: the four
-        loop nodes' (nodes/realtime.py; the simulator and the recorder stay under the normal scheduler);
+        loop nodes' (nodes/process_tuning.py; the simulator and the recorder stay under the normal scheduler);
         composed: the four loop nodes in one cell_container process instead of four."""
         from geometry_msgs.msg import PoseStamped
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import yaml
 
-from ..nodes.fast_input import FastInput, ServedDirectly, serve_ready
+from ..nodes.direct_input import DirectInput, ServedDirectly, serve_ready
 from ..resources import PACKAGE, ament_prefix
 from . import processes
 
@@ -120,7 +120,7 @@ class Graph:
                                       namespace="/" + self.namespace if self.namespace else None)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.fast_input = FastInput(None, self.context)  # the high-rate topics (subscribe_fast)
+        self.direct_input = DirectInput(None, self.context)  # the high-rate topics (subscribe_fast)
         self._served_here = ServedDirectly()
         self._parameter_clients: dict = {}
         self.diagnostics: dict[str, dict] = {}  # status name -> its values, the newest of each node
@@ -243,15 +243,15 @@ class Graph:
         return self._launch(name)
 
     def subscribe_fast(self, msg_type, topic: str, callback, depth: int = 1000):
-        """A subscription for a high-rate topic, taken directly (nodes/fast_input.py): through the executor,
+        """A subscription for a high-rate topic, taken directly (nodes/direct_input.py): through the executor,
         the client's per-message overhead at 250 Hz took CPU the graph under test needed."""
         subscription = self.node.create_subscription(msg_type, topic, callback, depth,
                                                      callback_group=self._served_here)
-        self.fast_input.add(subscription, callback)
+        self.direct_input.add(subscription, callback)
         return subscription
 
     def unsubscribe_fast(self, subscription) -> None:
-        self.fast_input.remove(subscription)
+        self.direct_input.remove(subscription)
         self.node.destroy_subscription(subscription)
 
     def spin_until(self, condition, timeout: float, housekeeping_period: float = 0.01) -> bool:
@@ -266,7 +266,7 @@ class Graph:
                         raise RuntimeError(f"{name} exited with {process.returncode}; see {self.log_dir / name}.log")
                 serve_ready(self.executor)
                 due = time.monotonic() + housekeeping_period
-            self.fast_input.pump(min(due, deadline) - time.monotonic())
+            self.direct_input.pump(min(due, deadline) - time.monotonic())
         return bool(condition())
 
     def set_parameters(self, node_name: str, values: dict, timeout: float = 10.0) -> None:

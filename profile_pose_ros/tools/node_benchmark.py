@@ -162,7 +162,7 @@ class LoadRun(NodeProcess):
         load.stdin.flush()
         next_sample = wall_start
         while load.poll() is None:
-            self.fast_inputs[0].pump(0.005)  # poses, timestamped as they are taken
+            self.direct_inputs[0].pump(0.005)  # poses, timestamped as they are taken
             if time.monotonic() >= next_sample:
                 self.samples.append({"t": time.monotonic() - wall_start, **processes.memory_kib(pid)})
                 self.executor.spin_once(timeout_sec=0.0)  # diagnostics

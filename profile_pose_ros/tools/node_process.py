@@ -27,17 +27,17 @@ class NodeProcess:
         self.node = rclpy.create_node(client_name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.fast_inputs = []  # subscriptions served directly (nodes/fast_input.py)
+        self.direct_inputs = []  # subscriptions served directly (nodes/direct_input.py)
 
     def subscribe_fast(self, msg_type, topic: str, callback, qos, with_info: bool = False) -> None:
         """A subscription taken without the executor's per-message overhead (for latency measurements);
         with_info: callback(message, info) with rmw's timestamps."""
-        from ..nodes.fast_input import FastInput, ServedDirectly
+        from ..nodes.direct_input import DirectInput, ServedDirectly
 
         subscription = self.node.create_subscription(msg_type, topic, callback, qos, callback_group=ServedDirectly())
-        fast_input = FastInput(None, self.context)
-        fast_input.add(subscription, callback, with_info)
-        self.fast_inputs.append(fast_input)
+        direct_input = DirectInput(None, self.context)
+        direct_input.add(subscription, callback, with_info)
+        self.direct_inputs.append(direct_input)
 
     def spin_until(self, condition, timeout: float) -> bool:
         """Spin the client until condition() or the deadline; a node process that died is an error."""
@@ -45,9 +45,9 @@ class NodeProcess:
         while not condition() and time.monotonic() < deadline:
             if self.process.poll() is not None:
                 raise RuntimeError(f"the node process exited; see {self.log_path}")
-            for fast_input in self.fast_inputs:
-                fast_input.pump(0.002)
-            self.executor.spin_once(timeout_sec=0.0 if self.fast_inputs else 0.01)
+            for direct_input in self.direct_inputs:
+                direct_input.pump(0.002)
+            self.executor.spin_once(timeout_sec=0.0 if self.direct_inputs else 0.01)
         return bool(condition())
 
     def close(self) -> None:

@@ -1,6 +1,6 @@
 """A node that estimates nothing: the latency floor of a profile-in, pose-out node on this machine.
 
-It takes each profile the way pose_estimator does (serialized, sensor-data QoS, through a FastInput,
+It takes each profile the way pose_estimator does (serialized, sensor-data QoS, through a DirectInput,
 the same run loop) and publishes a pose carrying the profile's stamp, serialized as pose_estimator's are.
 What profile_pose node-benchmark measures for it is what rclpy, DDS and the machine's scheduling cost a
 node before it does any work, so the estimator's own share is the difference. Benchmark-only: no
@@ -16,7 +16,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from ..core.wire.pose_cdr import encode_pose_cdr
-from ..nodes.fast_input import FastInput, ServedDirectly, spin
+from ..nodes.direct_input import DirectInput, ServedDirectly, spin
 from ..nodes.local_topics import profile_input_qos
 from ..nodes.messages import cdr_stamp_ns
 from ..nodes.run import run_node
@@ -33,7 +33,7 @@ class NullNode(Node):
         subscription = self.create_subscription(PointCloud2, "profile", self._on_profile,
                                                 profile_input_qos(QUEUE_DEPTH), callback_group=ServedDirectly(),
                                                 raw=True)
-        self.fast_input = FastInput(subscription, self.context, self._on_profile)
+        self.direct_input = DirectInput(subscription, self.context, self._on_profile)
 
     def _on_profile(self, serialized: bytes) -> None:
         self.pose_pub.publish(encode_pose_cdr(self.rotation, self.translation, cdr_stamp_ns(serialized), "gauge"))
@@ -41,7 +41,7 @@ class NullNode(Node):
 
 def main(args=None) -> int:
     return run_node(NullNode, "null_node", args,
-                    spin=lambda executor, node, stop: spin(executor, node.fast_input, stop))
+                    spin=lambda executor, node, stop: spin(executor, node.direct_input, stop))
 
 
 if __name__ == "__main__":

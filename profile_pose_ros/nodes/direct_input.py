@@ -1,12 +1,14 @@
-"""High-rate subscriptions served directly, not through the executor's generic wait.
+"""High-rate subscriptions served directly, not through the executor's generic wait: the package's only
+use of rclpy's private API (its C extension's WaitSet and take_message), kept here with its reason, and
+held to rclpy by test_rclpy_private_api.py, which fails by name when an upgrade changes any of it.
 
 rclpy's executor rebuilds a wait set over every timer, service, guard condition and event handler of the
-node on each wake-up; at 1 kHz that costs about as much as estimating the pose. A FastInput waits on its
+node on each wake-up; at 1 kHz that costs about as much as estimating the pose. A DirectInput waits on its
 subscriptions (a node's one high-rate input; every topic the recorder records) and drains each that is
 ready, so a profile costs one wait and one take; `spin` runs the executor for
 everything else (timers, parameter services, QoS events) at a housekeeping period (50 ms: each executor
 pass cost ~0.3 ms of CPU, 3 % of a core at the former 10 ms). A deadline that must be kept (the
-compensator's watchdog) is a `tick` of the FastInput instead. The subscriptions are in
+compensator's watchdog) is a `tick` of the DirectInput instead. The subscriptions are in
 a callback group the executor never schedules, so the two never compete for a message. Single-threaded:
 two threads waiting in rcl at once would contend for the GIL.
 """
@@ -18,16 +20,17 @@ from contextlib import ExitStack
 from typing import Callable
 
 from rclpy._rclpy_pybind11 import RCLError
-from rclpy.callback_groups import CallbackGroup
+from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from rclpy.executors import ConditionReachedException, ShutdownException, TimeoutException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.subscription import Subscription
 
 from .run import StopRequest
 
 
 class ServedDirectly(CallbackGroup):
-    """A callback group whose entities the executor leaves alone: a FastInput serves them."""
+    """A callback group whose entities the executor leaves alone: a DirectInput serves them."""
 
     def can_execute(self, entity) -> bool:
         return False
@@ -39,7 +42,7 @@ class ServedDirectly(CallbackGroup):
         pass
 
 
-class FastInput:
+class DirectInput:
     def __init__(self, subscription: Subscription | None, context, callback: Callable | None = None, guard=None,
                  tick: Callable[[], float] | None = None) -> None:
         """subscription and callback: the input (more with add(); None to start with none). guard: an
@@ -87,15 +90,11 @@ class FastInput:
             ready = self._wait(timeout_sec)
         handled = 0
         for subscription, callback, with_info in ready:
-            while True:
-                with subscription.handle:
-                    taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
-                if taken is None:
-                    break
+            for message, info in take_all(subscription):
                 if with_info:
-                    callback(*taken)
+                    callback(message, info)
                 else:
-                    callback(taken[0])
+                    callback(message)
                 handled += 1
         if time.monotonic() >= self.tick_due:
             self.tick_due = self.tick()
@@ -117,6 +116,24 @@ class FastInput:
         if guard_ready:
             self.guard.callback()
         return ready
+
+
+def take_all(subscription: Subscription):
+    """Every message queued on `subscription` now, as (message, rmw's info dict), without waiting."""
+    while True:
+        with subscription.handle:
+            taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+        if taken is None:
+            return
+        yield taken
+
+
+def on_message_lost(node, subscription: Subscription, callback: Callable) -> None:
+    """callback(info) when the middleware reports samples that never reached `subscription`: its event
+    handler, which rclpy builds only for a subscription created with one, added to the node's executor."""
+    for handler in SubscriptionEventCallbacks(message_lost=callback).create_event_handlers(
+            MutuallyExclusiveCallbackGroup(), subscription.handle, subscription.topic_name):
+        node.add_waitable(handler)
 
 
 def serve_ready(executor) -> int:
@@ -141,14 +158,14 @@ def serve_ready(executor) -> int:
         round_served += 1
 
 
-def spin(executor, fast_input: FastInput, stop: StopRequest, housekeeping_period: float = 0.05) -> None:
-    """Serve fast_input continuously and the executor's other work every housekeeping_period, until
+def spin(executor, direct_input: DirectInput, stop: StopRequest, housekeeping_period: float = 0.05) -> None:
+    """Serve direct_input continuously and the executor's other work every housekeeping_period, until
     `stop` (Ctrl-C) or shutdown."""
     context = executor.context
     due = time.monotonic()
     while context.ok() and not stop.is_set():
         try:
-            fast_input.pump(max(0.0, due - time.monotonic()))
+            direct_input.pump(max(0.0, due - time.monotonic()))
             if time.monotonic() >= due:
                 serve_ready(executor)
                 due = time.monotonic() + housekeeping_period
