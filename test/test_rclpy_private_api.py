@@ -18,7 +18,9 @@ def test_the_private_names_direct_input_uses_exist() -> None:
     assert not missing, f"rclpy's C extension no longer has {missing}: nodes/direct_input.py needs a new way in"
     for method in ("clear_entities", "add_subscription", "add_guard_condition", "wait", "is_ready"):
         assert hasattr(c_extension.WaitSet, method), f"rclpy's WaitSet lost {method}() (nodes/direct_input.py)"
-    from rclpy._rclpy_pybind11 import RCLError  # noqa: F401 - the import is the check
+    import rclpy._rclpy_pybind11 as pybind  # direct_input.py imports RCLError from here
+
+    assert hasattr(pybind, "RCLError"), "rclpy._rclpy_pybind11 no longer has RCLError (nodes/direct_input.py)"
 
 
 def test_a_served_directly_subscription_and_guard_work_end_to_end() -> None:

@@ -1,7 +1,7 @@
 """cell_container: profiler_driver, pose_estimator, pd_compensator and motoplus_bridge composed in one
-process, the loop's topics handed over in-process (local_topics.py), for a cell PC short of CPU: at
-83.3 Hz it took two thirds of the CPU of four processes and sent increments ~1.5 ms sooner; at 1 kHz on
-a 2-core VM it was worse, the four nodes sharing one interpreter lock (docs/performance.md).
+process, the loop's topics handed over in-process (local_topics.py), for a cell PC short of CPU at the
+paper's 83.3 Hz: less CPU than four processes, increments sent sooner. At 1 kHz on two cores the four
+nodes sharing one interpreter lock do worse than four processes (docs/performance.md).
 
 Each node keeps its name, parameters, topics, services and /diagnostics, so the parameter files, the
 bringup's checks, bags and `ros2 param` work as with four processes; `profile`, `pose_with_covariance`

@@ -3,11 +3,12 @@ use of rclpy's private API (its C extension's WaitSet and take_message), kept he
 held to rclpy by test_rclpy_private_api.py, which fails by name when an upgrade changes any of it.
 
 rclpy's executor rebuilds a wait set over every timer, service, guard condition and event handler of the
-node on each wake-up; at 1 kHz that costs about as much as estimating the pose. A DirectInput waits on its
-subscriptions (a node's one high-rate input; every topic the recorder records) and drains each that is
-ready, so a profile costs one wait and one take; `spin` runs the executor for
-everything else (timers, parameter services, QoS events) at a housekeeping period (50 ms: each executor
-pass cost ~0.3 ms of CPU, 3 % of a core at the former 10 ms). A deadline that must be kept (the
+node on each wake-up; at 1 kHz that costs about as much as estimating the pose (the node's CPU share fell by
+a fifth without it: docs/performance.md). A DirectInput waits on its subscriptions (a node's one high-rate
+input; every topic the recorder records) and drains each that is ready, so a profile costs one wait and
+one take; `spin` runs the executor for everything else (timers, parameter services, QoS events) at a
+housekeeping period (50 ms: an executor pass costs a fraction of a millisecond of CPU, too much to pay a
+hundred times a second for work that can wait). A deadline that must be kept (the
 compensator's watchdog) is a `tick` of the DirectInput instead. The subscriptions are in
 a callback group the executor never schedules, so the two never compete for a message. Single-threaded:
 two threads waiting in rcl at once would contend for the GIL.

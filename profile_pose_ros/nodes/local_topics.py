@@ -1,8 +1,8 @@
 """Intra-process delivery for the loop's nodes composed in one process (cell_container).
 
 rclpy has no intra-process transport: between two nodes of one process a message still goes through
-DDS, and each hop costs a publish, a wake-up of the taking thread and a take (about 0.8 ms of CPU per
-profile per node on this 2-core VM at 1 kHz, most of the graph's cost). Composed, the loop's topics
+DDS, and each hop costs a publish, a wake-up of the taking thread and a take (most of the graph's CPU at
+1 kHz: docs/performance.md). Composed, the loop's topics
 (profile -> pose_with_covariance -> correction) are handed from the publishing node to the taking node
 as the same serialized bytes, in the publisher's thread: the driver's link thread receives a frame,
 and the estimate, the correction and the bridge's store follow without a wake-up. DDS still carries
@@ -17,10 +17,9 @@ the publisher and goes no further (one node's fault must not stop another's thre
 Profiles: the driver hands over only the newest of the frames it read at once (profiler_driver.py).
 The chain runs in its link thread, so when the chain is slower than the profiler, frames wait in the
 socket and arrive together, and the older ones are superseded instead of queued: the loop works on
-the newest measurement, as with the estimator's KEEP_LAST queue over DDS. Two things did worse: handing
-over every profile (1.1 s behind after 30 s at 1 kHz on this VM), and a worker thread with its own
-queue (the link thread then waited for the GIL at every socket read, up to a switch interval each time,
-and fell behind; 30 % of the profiles were used in a 1-minute soak at 1 kHz).
+the newest measurement, as with the estimator's KEEP_LAST queue over DDS. Handing over every profile
+falls ever further behind when the chain is slower than the profiler; a worker thread with its own queue
+makes the link thread wait for the GIL at every socket read, so it falls behind too (docs/design_notes.md).
 """
 from __future__ import annotations
 
@@ -32,9 +31,8 @@ Taker = Callable[[bytes], None]
 
 # How a loop node takes its high-rate input over DDS (the compensator's poses, the bridge's corrections):
 # the newest message is what counts, and a retransmitted old one is of no use to a loop. A best-effort
-# reader also halves what each publish costs the publisher, which keeps its reliable offer for anyone
-# else (a recorder, `ros2 topic echo`): 95 -> 55 us per TwistStamped publish to one reader, median, at
-# 1 kHz across processes on this 2-core VM. Over loopback nothing is lost either way unless the reader's
+# reader also about halves what each publish costs the publisher, which keeps its reliable offer for
+# anyone else (a recorder, `ros2 topic echo`; docs/design_notes.md). Over loopback nothing is lost either way unless the reader's
 # queue overflows, and then KEEP_LAST drops the oldest, reliable or not.
 LOOP_INPUT_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT,
                             durability=DurabilityPolicy.VOLATILE)
@@ -62,7 +60,7 @@ class LocalTopics:
 
 class LoopOutput:
     """A node's publisher of a loop topic. publish() sends over DDS if anyone subscribes there (publishing
-    to nobody still cost ~20 us a message at 1 kHz); hand_over() then gives the same bytes to every local
+    to nobody still costs a serialization and a write); hand_over() then gives the same bytes to every local
     taker. Two steps, so that a node times its stage at the publish, as it does standalone, and not after
     the downstream nodes' work."""
 

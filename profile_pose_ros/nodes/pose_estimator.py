@@ -270,7 +270,7 @@ class PoseEstimatorNode(Node):
             self.last_reprojection_error = result.reprojection_error
         if result.reason:
             return result.reason
-        if self.pose_pub.get_subscription_count():  # publishing to nobody cost ~20 us a profile at 1 kHz
+        if self.pose_pub.get_subscription_count():  # publishing to nobody still costs a write
             self.pose_pub.publish(result.pose)
         self.covariance_out.publish(result.pose_with_covariance)  # it checks the same
         self.latency.add(time.time() - result.stamp_ns * 1e-9)

@@ -36,8 +36,8 @@ def shorten_switch_interval(seconds: float) -> None:
 
 def freeze_startup_heap() -> None:
     """What start-up built (modules, compiled kernels, rclpy's types: ~10^5 objects) lives as long as the
-    process; frozen, the collector never walks it again. A full collection over it took 37 ms here, tens of
-    profiles at 1 kHz; what the node allocates from now on is collected as usual."""
+    process; frozen, the collector never walks it again (a full collection over it lasts tens of profiles
+    at 1 kHz); what the node allocates from now on is collected as usual."""
     gc.collect()
     gc.freeze()
 

@@ -50,7 +50,7 @@ class Mounting:
 
     gauge_in_base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # x y z (m), rx ry rz (rad)
 
-    # computed once (every pose needs them; rebuilding the rotation was ~5 % of the compensator at 1 kHz)
+    # computed once: every pose needs them
     # and read-only, since every caller shares them
     @cached_property
     def rotation(self) -> np.ndarray:
@@ -84,8 +84,8 @@ def covariance_in_base(covariance: np.ndarray, mounting: Mounting) -> np.ndarray
 
 class AxisKalman:
     """Six independent constant-velocity filters: state [position, velocity] per axis, and each axis's
-    2 x 2 covariance as its three distinct entries. On Python floats, axis by axis: 6 us an update here,
-    where the same algebra as numpy operations on six axes at once took 37 us (small-array overhead)."""
+    2 x 2 covariance as its three distinct entries. On Python floats, axis by axis: numpy's per-call
+    overhead on six-element arrays costs several times the arithmetic (docs/design_notes.md)."""
 
     def __init__(self, acceleration_psd: np.ndarray) -> None:
         self.q = [float(v) for v in np.asarray(acceleration_psd, dtype=float)]  # (m/s^2)^2 / Hz, per axis

@@ -36,13 +36,10 @@ the previous period, less half the poses' spacing (the median of the last SPACIN
 cell that triggers the profiler each period has one pose a period; a profiler on its own faster clock
 (1 kHz beside a 4 ms controller) has several, and the others are not used; its periods then follow a
 grid at exactly T (its stamps say nothing of the controller's phase), else a profiler 1-1.5x faster than
-the controller started a period with every pose. Until 2026-12-02 a pose half
-a period after the last started a new period, so at 1 kHz the filter ran two periods for every one of the
-controller's. (Measuring the others into the state was tried offline on sim_cell's arm, to first order
-and with the model's exact propagation over part of a period: the exact way halved the state's position
-error, 10.8 -> 5.0 um at 4 ms, but the arm holding still moved no less, 4.4 -> 4.8 um, and more at 12 ms,
-4.1 -> 7.6 um; the same with an arm exactly as modelled (3.2 -> 6.6 um at 12 ms), so not from a model
-that is off. Why was not found; not kept.) A gap of more than MAX_GAP periods, or time going backwards,
+the controller started a period with every pose. (A pose half a period after the last must not start a
+new period: at 1 kHz the filter would run two periods for every one of the controller's. Measuring the
+poses between into the state sharpens the state's position but does not hold the arm stiller:
+docs/design_notes.md.) A gap of more than MAX_GAP periods, or time going backwards,
 restarts.
 """
 from __future__ import annotations

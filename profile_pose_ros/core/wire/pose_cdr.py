@@ -2,9 +2,9 @@
 message objects: the estimator's PoseStamped and PoseWithCovarianceStamped out, the compensator's pose in
 and TwistStamped correction out, the bridge's correction in and its robot_state and increments out.
 
-Publishing the estimator's two poses as rclpy messages cost ~70 us a profile on 2026-12-02, ~45 us of it
-rclpy converting the Python objects (the 36-value covariance above all); handed bytes, rclpy only writes
-them (~15 us). Taking a message builds a tree of Python objects the same way. The bytes written are
+Publishing the estimator's two poses as rclpy messages spends most of its time in rclpy converting the
+Python objects (the 36-value covariance above all); handed bytes, rclpy only writes them
+(docs/design_notes.md). Taking a message builds a tree of Python objects the same way. The bytes written are
 rclpy's but for the alignment padding, zero here where rclpy leaves whatever was in memory (tests compare
 them). What is read is outside input: anything that is not the message raises CdrFormatError.
 """

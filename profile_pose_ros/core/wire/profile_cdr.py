@@ -1,8 +1,8 @@
 """A profile as it travels on the wire, a serialized sensor_msgs/PointCloud2 (little-endian CDR), decoded
 and encoded without building the ROS message.
 
-rclpy's conversion of a 3200-point cloud into Python objects cost 30-60 us, a fifth of the estimator
-node's time per profile at 1 kHz; this reads the few metadata fields with struct (and only when they
+rclpy's conversion of a 3200-point cloud into Python objects is a fifth of the estimator node's time per
+profile at 1 kHz (docs/design_notes.md); this reads the few metadata fields with struct (and only when they
 differ from the previous profile's) and hands the point table, in place, to decode_profile. A bag's
 recorded bytes take the very same path in replay. Anything malformed raises ProfileFormatError, like
 every other profile check. The driver publishes the bytes encode_profile_cdr writes: rclpy's
@@ -120,9 +120,9 @@ _last_layout: _Layout | None = None  # the previous profile's, to recognise the 
 def decode_profile_cdr(data: bytes | bytearray | memoryview) -> ProfileMessage:
     """A serialized PointCloud2 profile -> stamp, frame_id and [x, z] points. Raises ProfileFormatError.
 
-    The layout is read field by field only when it differs from the previous profile's: that took ~30 us
-    of Python (a slow day of this VM), an eighth of the estimator node's time per profile, and a publisher
-    sends the same layout every time. The same bytes read the same, so nothing else changes."""
+    The layout is read field by field only when it differs from the previous profile's: reading it is a
+    noticeable share of the node's time per profile (docs/design_notes.md), and a publisher sends the same
+    layout every time. The same bytes read the same, so nothing else changes."""
     global _last_layout
     data = bytes(data) if not isinstance(data, bytes) else data
     layout = _last_layout

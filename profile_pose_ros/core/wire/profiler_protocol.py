@@ -56,8 +56,8 @@ class ProfileFrame:
     def xyz_table(self) -> bytes:
         """The profile as DESIGN.md's point table (x, y = 0, z as float32, 12 bytes a point; NaN x, y and z
         where there is no point), straight from the counts: the bytes profile_cloud.encode_profile(points)
-        gives (a test holds them equal), without the float64 points in between: decoding and encoding a
-        frame took 157 us that way, 103 us this way."""
+        gives (a test holds them equal), without the float64 points in between, which cost a third more
+        per frame."""
         valid = self.counts >= INVALID_Z_LIMIT
         table = np.empty((len(self.counts), 3), dtype="<f4")
         table[:, 0] = np.where(valid, _x_grid(self.x_start, self.x_pitch, len(self.counts)), np.float32(np.nan))
