@@ -1,9 +1,7 @@
-"""The dense refinement (dense.py) compiled: the same selection, robust cut and Gauss-Newton steps.
-
-In numpy it cost 3-4 ms a profile, too slow for the 83.3 Hz loop beside the other nodes on two cores
-(the main job had to fall back to the corner refinement). Steps are solved through the normal
-equations (Cholesky) instead of numpy's SVD least squares; both land on the same minimiser, within
-1e-9 m and 1e-9 rad (tests).
+"""The dense refinement compiled (estimation/dense.py says what it fits): point selection, robust cut and
+Gauss-Newton steps in one call, fast enough for the loop beside the other nodes on two cores (written in
+numpy it was not: docs/design_notes.md). Steps are solved through the normal equations (Cholesky):
+no LAPACK in the hot path.
 """
 from __future__ import annotations
 

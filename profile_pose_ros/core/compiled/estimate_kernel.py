@@ -60,7 +60,7 @@ def _rdp(px, pz, epsilon, keep, stack, scratch):
         best = -1.0
         split = -1
         # Loops over views from 0, not range(first + 1, last): an index numba cannot prove non-negative
-        # gets a wraparound check that stops LLVM vectorising (3x slower here).
+        # gets a wraparound check that stops LLVM vectorising.
         x = px[first + 1:last]
         z = pz[first + 1:last]
         if length > 0:
@@ -622,8 +622,8 @@ def _householder_lstsq(a, b, x):
 @njit(**JIT)
 def _polar_rotation(m, out):
     """out = U V^T of m = U S V^T (the rotation nearest m) by Newton's polar iteration A <- (A + A^-T) / 2,
-    when det(m) > 0 and it converges: the same rotation as the SVD's to rounding, without LAPACK's
-    ~4 us a call for a 3 x 3. False otherwise (a reflection is nearer, or m is near singular): use the SVD."""
+    when det(m) > 0 and it converges: the same rotation as the SVD's to rounding, without a LAPACK call
+    that costs more than the iteration. False otherwise (a reflection is nearer, or m is near singular): use the SVD."""
     a = np.empty((3, 3))
     cof = np.empty((3, 3))
     a[:, :] = m

@@ -1,6 +1,6 @@
 """The renderer's ray trace compiled with numba, for sim_cell at 1 kHz (the numpy trace in render.py is
-the reference; tests hold the two equal). One loop over rays instead of whole-array passes per face:
-about 20x faster, so the simulated profiler keeps up with its trigger. `visible_depth_fast` adds the
+the reference; tests hold the two equal). One loop over rays instead of whole-array passes per face, so
+the simulated profiler keeps up with its trigger (docs/design_notes.md). `visible_depth_fast` adds the
 emitter's shadow and the measurement range in the same compiled call."""
 from __future__ import annotations
 

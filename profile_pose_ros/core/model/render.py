@@ -35,7 +35,7 @@ class ProfilerModel:
 
     @cached_property
     def x(self) -> np.ndarray:
-        """The sample columns' x (read-only: one array shared by every render, ~5 us a build at 1 kHz)."""
+        """The sample columns' x (read-only: one array shared by every render, not rebuilt for each)."""
         x = self.x_start + self.x_pitch * np.arange(self.n_points)
         x.setflags(write=False)
         return x

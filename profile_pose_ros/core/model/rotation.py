@@ -50,7 +50,7 @@ def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
 
 def quaternion_xyzw(rotation: np.ndarray) -> np.ndarray:
     """Unit quaternion (x, y, z, w) with w >= 0, as geometry_msgs wants it. On Python floats: every
-    published pose needs one, and numpy scalar arithmetic made it ~4x slower."""
+    published pose needs one, and numpy's per-call overhead on scalars costs several times the arithmetic."""
     (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = np.asarray(rotation, dtype=float).tolist()
     trace = m00 + m11 + m22
     if trace > 0:

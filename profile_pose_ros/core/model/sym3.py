@@ -1,6 +1,6 @@
 """The largest eigenvalue of a symmetric 3 x 3 matrix in closed form, plain Python on floats, so that the
 numpy path (result.position_sigma) and the compiled kernel (estimate_kernel.py compiles this same function) share
-one source. LAPACK through numpy cost ~10 us a call: a fifth of the compiled estimator."""
+one source. LAPACK through numpy would cost a fifth of the compiled estimator (docs/design_notes.md)."""
 from __future__ import annotations
 
 import math
