@@ -32,6 +32,7 @@ DISARMED, DISCONNECTED, CONNECTED, ARMING, ARMED = "disarmed", "disconnected", "
 # the controller after its next period, be applied a period later, and so move on a correction older than
 # max_age + one period (the stop bound). The bridge's hold (answer_wait <= 0.7) leaves before it.
 LATE_ANSWER = 0.75
+STOP_DRAIN_S = 0.25  # s: at most this long reading the controller's last frames after STOP (it closes on STOP)
 
 
 @dataclass(frozen=True)
@@ -123,15 +124,19 @@ class MotoPlusClient:
         self.log(f"disarmed: {reason}")
 
     def stop(self) -> None:
-        """STOP to the controller, then close (every shutdown path ends here)."""
+        """STOP to the controller, then close (every shutdown path ends here). The close is graceful: STOP
+        and then our FIN, and the socket thread reads what the controller still sends until it closes too.
+        Closing with its STATEs unread would make the kernel send a reset, and a controller that had not
+        yet read STOP would lose it to the reset and see a dropped connection instead of the end asked for."""
         self._arm_requested.clear()
         if self.state in (ARMED, ARMING):
             self.state = CONNECTED  # before STOP leaves: the close that follows is the end asked for
         self._send(mp.Stop())
+        self._finish_sending()
         self._stop.set()
-        self._close()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
+        self._close()
 
     # ---------------------------------------------------------------- socket thread
     def _run(self) -> None:
@@ -160,7 +165,7 @@ class MotoPlusClient:
                 self.monitor.fault()
                 self.counters.faults += 1
                 self.log(f"session lost ({self.last_error}); disarmed until ~/start")
-            self._close()
+            self._close(drain_s=STOP_DRAIN_S if self._stop.is_set() else 0.0)
             self.state = DISCONNECTED if self._arm_requested.is_set() else DISARMED
             if self._stop.is_set():
                 return
@@ -287,11 +292,29 @@ class MotoPlusClient:
                 self.last_error = f"send: {exc}"
                 return False
 
-    def _close(self) -> None:
+    def _finish_sending(self) -> None:
+        """Our FIN after everything sent so far (the controller reads STOP, then the end of the stream)."""
+        with self._send_lock:
+            if self._sock is not None:
+                try:
+                    self._sock.shutdown(socket.SHUT_WR)
+                except OSError:
+                    pass
+
+    def _close(self, drain_s: float = 0.0) -> None:
+        """Close the socket; drain_s > 0: first read (and drop) what the controller still sends, until it
+        closes its side or drain_s passes, so the close is a FIN and not a reset."""
         with self._send_lock:
             sock, self._sock = self._sock, None
-        if sock is not None:
-            try:
-                sock.close()
-            except OSError:
-                pass
+        if sock is None:
+            return
+        try:
+            deadline = time.monotonic() + drain_s
+            while (left := deadline - time.monotonic()) > 0:
+                sock.settimeout(left)
+                if not sock.recv(4096):
+                    break
+        except OSError:
+            pass
+        finally:
+            sock.close()
