@@ -11,7 +11,6 @@ from profile_pose_ros.core import EstimatorOptions, render_profile, sample_pose
 from profile_pose_ros.core.compiled import aot
 from profile_pose_ros.core.compiled import estimate_kernel
 from profile_pose_ros.core.estimation.result import position_sigma
-from profile_pose_ros.core.estimation.stages import option_vector
 
 
 def run(kernel, points, gauge, opt):
@@ -25,7 +24,7 @@ def run(kernel, points, gauge, opt):
 def test_prebuilt_and_jit_kernels_agree(gauge, rng):
     module = aot.load()
     assert module is not None, "the prebuilt estimator could not be built on this machine"
-    opt = option_vector(EstimatorOptions())
+    opt = EstimatorOptions().kernel_vector
     for _ in range(30):
         points = render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng)
         (status_a, outs_a), (status_j, outs_j) = run(module.estimate, points, gauge, opt), run(estimate_kernel.estimate, points,

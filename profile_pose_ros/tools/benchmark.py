@@ -22,7 +22,6 @@ import numpy as np
 from ..core import EstimatorOptions, Gauge, estimate_pose, render_profile, sample_pose
 from ..core.compiled import estimate_kernel
 from ..core.estimation.estimator import warm_up
-from ..core.estimation.stages import option_vector
 from ..resources import DEFAULT_GAUGE, config_path
 from .numpy_baseline import estimate_baseline
 from .report import run_dir, summary, table, write_json
@@ -39,7 +38,7 @@ def ms(values) -> dict:
 
 
 def time_ours(gauge: Gauge, profiles: list[np.ndarray], options: EstimatorOptions) -> dict:
-    opt = option_vector(options)
+    opt = options.kernel_vector
     n = gauge.n_ridges
     corners, jac, line_var, info = np.empty((n, 2)), np.empty((2 * n, 2 * n + 2)), np.empty(2 * n + 2), np.zeros(4)
     lines = np.empty((n + 1, 10))

@@ -21,7 +21,7 @@ from .pipeline import check_solution, estimate_multistart
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_outside,
                      reason_poorly_determined, reason_reprojection, ros_covariance)
 from .solver import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
-from .stages import detect_corners, detection_reason, option_vector, refine_dense, refine_pose
+from .stages import detect_corners, detection_reason, refine_dense, refine_pose
 
 
 def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | None = None,
@@ -112,7 +112,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     start = time.perf_counter()
     try:
         status, iterations, fit_rms, error, cf_error, sigma = kernels().estimate(
-            points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, option_vector(options), corners, rot, t,
+            points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, options.kernel_vector, corners, rot, t,
             cov, cf_rot, cf_t, cf_res, res, info)
     except np.linalg.LinAlgError as exc:
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})

@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
+from ..compiled import codes
 from ..model.gauge import Gauge
 from ..model.sym3 import largest_eigenvalue
-from .corners import CornerOptions
+from .corners import ROBUST_PASSES, CornerOptions
 from .solver import PoseSolution
 
 WEIGHTINGS = ("corner_covariance", "uniform")
@@ -40,6 +42,32 @@ class EstimatorOptions:
             raise ValueError(f"refine_weighting must be one of {WEIGHTINGS}, got {self.refine_weighting!r}")
         if self.refine_model not in REFINE_MODELS:
             raise ValueError(f"refine_model must be one of {REFINE_MODELS}, got {self.refine_model!r}")
+
+    @cached_property
+    def kernel_vector(self) -> np.ndarray:
+        """These options packed as the compiled estimator takes them (compiled/codes.py), once per options
+        object: every profile needs them."""
+        c = self.corners
+        v = np.empty(codes.N_OPTIONS)
+        v[codes.O_EPS] = c.rdp_epsilon
+        v[codes.O_TRIM] = c.trim_fraction
+        v[codes.O_MINSEG] = c.min_segment_points
+        v[codes.O_MINANGLE] = c.min_corner_angle
+        v[codes.O_MAXFACE] = c.max_face_angle
+        v[codes.O_MAXOFF] = c.max_corner_offset
+        v[codes.O_ROBUST] = 1.0 if c.robust_line_fit else 0.0
+        v[codes.O_THR] = c.outlier_threshold
+        v[codes.O_FLOOR] = c.min_outlier_floor
+        v[codes.O_NOISE] = self.noise_std
+        v[codes.O_SIGFLOOR] = 1e-7  # same floor as CornerResult.covariance
+        v[codes.O_WEIGHTED] = 1.0 if self.refine_weighting == "corner_covariance" else 0.0
+        v[codes.O_REFINE] = 1.0 if self.refine else 0.0
+        v[codes.O_MAXIT] = self.max_iterations
+        v[codes.O_MAXREPROJ] = self.max_reprojection_error
+        v[codes.O_MARGIN] = self.footprint_margin
+        v[codes.O_PASSES] = ROBUST_PASSES
+        v.setflags(write=False)
+        return v
 
     def with_changes(self, **changes) -> "EstimatorOptions":
         corner_keys = {k: changes.pop(k) for k in list(changes) if hasattr(CornerOptions, k)}

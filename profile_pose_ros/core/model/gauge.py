@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -48,6 +49,12 @@ class Gauge:
             object.__setattr__(self, name, value)
         self.normals.setflags(write=False)
         self.offsets.setflags(write=False)
+
+    @cached_property
+    def kernel_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(normals, offsets, ridge x at y = 0, u) as the compiled dense refinement takes them: contiguous
+        writable copies (its prebuilt signature), made once per gauge, not per profile."""
+        return tuple(np.array(a, dtype=np.float64) for a in (self.normals, self.offsets, self.q[:, 0], self.u))
 
     # ---------------------------------------------------------------- construction
     @classmethod
