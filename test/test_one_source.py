@@ -139,8 +139,9 @@ def test_polar_rotation_is_the_svd_s_nearest_rotation(seed, noise, scale):
        st.sampled_from([1e-5, 3e-4, 2e-3]))
 @settings(max_examples=300, deadline=None)
 def test_compiled_rdp_keeps_the_reference_s_vertices(seed, n, noise, epsilon):
-    """estimate_kernel._rdp (vectorised passes, argmax by bit pattern) against the numpy baseline's rdp_vertices, ties included: a
-    noiseless polyline has many equal distances, and both must split at the first."""
+    """estimate_kernel._rdp (vectorised passes, argmax by bit pattern) against the numpy baseline's
+    rdp_vertices, ties included: a noiseless polyline has many equal distances, and both must split at
+    the first."""
     from profile_pose_ros.core.compiled import estimate_kernel
     from profile_pose_ros.tools.numpy_baseline import rdp_vertices
 

@@ -12,7 +12,7 @@ from profile_pose_ros.bags.reader import typestore
 from profile_pose_ros.core.wire.pose_cdr import (CdrFormatError, SerializedPosePair, decode_pose_with_covariance_cdr,
                                                  decode_twist_cdr, encode_pose_cdr, encode_twist_cdr)
 from profile_pose_ros.core.model.rotation import so3_exp
-from profile_pose_ros.nodes.messages import PoseMessagePair, twist_stamped
+from profile_pose_ros.nodes.messages import fill_pose, pose_with_covariance, twist_stamped
 
 TYPES = {"pose": "geometry_msgs/msg/PoseStamped", "with_covariance": "geometry_msgs/msg/PoseWithCovarianceStamped"}
 
@@ -36,11 +36,14 @@ def test_serialized_poses_are_what_rclpy_would_send(values, frame_id, sec, nanos
     rotation, translation = so3_exp(np.array(values[:3])), np.array(values[3:6])
     a = np.diag(values[6:9] + [1.0, 2.0, 3.0]) + 0.1
     covariance = a @ a.T
-    messages, serialized = PoseMessagePair(), SerializedPosePair()
-    messages.fill(rotation, translation, covariance, sec, nanosec, frame_id)
+    serialized = SerializedPosePair()
     serialized.fill(rotation, translation, covariance, sec, nanosec, frame_id)
+    pose = PoseStamped()  # the same poses as rclpy's messages, the reference
+    pose.header.stamp.sec, pose.header.stamp.nanosec, pose.header.frame_id = sec, nanosec, frame_id
+    fill_pose(pose.pose, rotation, translation)
+    messages = {"pose": pose, "with_covariance": pose_with_covariance(pose, covariance)}
     for name, msgtype in TYPES.items():
-        ours, theirs = getattr(serialized, name), serialize_message(getattr(messages, name))
+        ours, theirs = getattr(serialized, name), serialize_message(messages[name])
         assert len(ours) == len(theirs)
         assert ours == padding_zeroed(theirs, msgtype) == padding_zeroed(ours, msgtype)
     # the bridge's robot_state: a PoseStamped on its own

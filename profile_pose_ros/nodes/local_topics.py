@@ -32,8 +32,8 @@ Taker = Callable[[bytes], None]
 # How a loop node takes its high-rate input over DDS (the compensator's poses, the bridge's corrections):
 # the newest message is what counts, and a retransmitted old one is of no use to a loop. A best-effort
 # reader also about halves what each publish costs the publisher, which keeps its reliable offer for
-# anyone else (a recorder, `ros2 topic echo`; docs/design_notes.md). Over loopback nothing is lost either way unless the reader's
-# queue overflows, and then KEEP_LAST drops the oldest, reliable or not.
+# anyone else (a recorder, `ros2 topic echo`; docs/design_notes.md). Over loopback nothing is lost either
+# way unless the reader's queue overflows, and then KEEP_LAST drops the oldest, reliable or not.
 LOOP_INPUT_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT,
                             durability=DurabilityPolicy.VOLATILE)
 

@@ -95,23 +95,6 @@ def _row_major(covariance: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(covariance, dtype=np.float64).reshape(36)
 
 
-class PoseMessagePair:
-    """A PoseStamped and a PoseWithCovarianceStamped sharing one header and one Pose. A publisher refills
-    the same pair for every estimate (publishing serializes at once): building two fresh messages is a
-    tenth of a profile's time at 1 kHz."""
-
-    def __init__(self) -> None:
-        self.pose = PoseStamped()
-        self.with_covariance = pose_with_covariance(self.pose, np.zeros(36))
-
-    def fill(self, rotation: np.ndarray, translation: np.ndarray, covariance: np.ndarray, stamp_sec: int,
-             stamp_nanosec: int, frame_id: str, hint=HALF_TURN_X) -> None:
-        self.pose.header.stamp.sec, self.pose.header.stamp.nanosec = stamp_sec, stamp_nanosec
-        self.pose.header.frame_id = frame_id
-        fill_pose(self.pose.pose, rotation, translation, hint)
-        self.with_covariance.pose.covariance = _row_major(covariance)
-
-
 def fill_pose(pose, rotation: np.ndarray, translation: np.ndarray, hint=HALF_TURN_X) -> None:
     pose.position.x, pose.position.y, pose.position.z = np.asarray(translation, dtype=float).tolist()
     pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = \

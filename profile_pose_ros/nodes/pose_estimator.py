@@ -37,7 +37,7 @@ from ..resources import DEFAULT_GAUGE, config_path
 from .diagnostics import ERROR, OK, WARN, diagnostic_array
 from .direct_input import DirectInput, ServedDirectly, on_message_lost, spin
 from .local_topics import LocalTopics, LoopOutput, profile_input_qos
-from .messages import PoseMessagePair, cdr_stamp_ns
+from .messages import cdr_stamp_ns
 from .parameters import Param, declare_all, updated
 from .process_tuning import REALTIME_PARAMETERS
 from .run import run_node
@@ -114,8 +114,8 @@ def options_from(values: dict) -> EstimatorOptions:
 @dataclass
 class ProfileResult:
     reason: str = ""  # why no pose; empty when there is one
-    pose: PoseStamped | bytes | None = None  # messages, or serialized (SerializedPosePair): both publish
-    pose_with_covariance: PoseWithCovarianceStamped | bytes | None = None
+    pose: bytes | None = None  # serialized PoseStamped and PoseWithCovarianceStamped (SerializedPosePair)
+    pose_with_covariance: bytes | None = None
     reprojection_error: float | None = None
     stamp_ns: int | None = None  # the profile's, when it had a pose
     profile: ProfileMessage | None = None  # the decoded profile and the pose's R, t (F in G), when it had one
@@ -124,12 +124,12 @@ class ProfileResult:
 
 
 def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOptions, profiler_frame: str,
-                       gauge_frame: str, into: PoseMessagePair | SerializedPosePair | None = None,
+                       gauge_frame: str, into: SerializedPosePair | None = None,
                        hint=HALF_TURN_X) -> ProfileResult:
     """The node's whole computation for one profile (a serialized PointCloud2, as taken from the topic or
     read from a bag), without the node: profile_pose replay runs exactly this on recorded profiles, so a
-    replay reproduces the published poses bit for bit. The poses are `into`'s messages, refilled, when it
-    is given (the node's, reused), else new ones; `hint` is orientation_hint (the quaternion's hemisphere)."""
+    replay reproduces the published poses bit for bit. The poses are `into`'s bytes, refilled, when it is
+    given (the node's, reused), else new ones; `hint` is orientation_hint (the quaternion's hemisphere)."""
     try:
         profile = decode_profile_cdr(serialized)
     except ProfileFormatError as exc:
@@ -139,7 +139,7 @@ def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOption
     estimate = estimate_pose(profile.points, gauge, options)
     if not estimate.ok:
         return ProfileResult(estimate.reason, reprojection_error=estimate.reprojection_error)
-    into = into or PoseMessagePair()
+    into = into or SerializedPosePair()
     into.fill(estimate.R, estimate.t, estimate.covariance, profile.stamp_sec, profile.stamp_nanosec, gauge_frame,
               hint)
     return ProfileResult("", into.pose, into.with_covariance, estimate.reprojection_error, profile.stamp_ns,

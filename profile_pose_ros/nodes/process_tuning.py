@@ -1,9 +1,9 @@
 """How a node process is tuned, all in one place: the GIL's switch interval, the start-up heap frozen out of
 the collector's way, a watchdog on shutdown, and real-time scheduling asked for by parameter.
 
-Real-time scheduling: on a 2-core cell PC the profile → pose → correction → increment chain shares the cores with everything
-else; under the normal scheduler a profile that arrives while another process runs waits for its time
-slice, which is what the loop's p99 latency is made of. With `realtime_priority` > 0 every thread of
+Real-time scheduling: on a 2-core cell PC the profile → pose → correction → increment chain shares the
+cores with everything else; under the normal scheduler a profile that arrives while another process runs
+waits for its time slice, which is what the loop's p99 latency is made of. With `realtime_priority` > 0 every thread of
 the node's process (the spin loop, the DDS receive threads, the bridge's socket thread) runs SCHED_FIFO
 at that priority, so a message that arrives preempts ordinary work at once. The threads block in waits
 between messages, and the kernel's RT throttling (sched_rt_runtime_us) keeps 5 % of each core for the

@@ -64,7 +64,7 @@ TRUTH_TOLERANCE_NS = 500_000  # a pose's stamp (the estimated trigger time) with
 
 def replay(bag: str | Path, values: dict, profile_topic: str | None = None, output: str | None = None) -> dict:
     from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-    from rclpy.serialization import deserialize_message, serialize_message
+    from rclpy.serialization import deserialize_message
 
     from ..core.estimation.estimator import warm_up
     from ..core.model.gauge import Gauge
@@ -101,9 +101,9 @@ def replay(bag: str | Path, values: dict, profile_topic: str | None = None, outp
                 key = result.reason.split(":")[0][:60]
                 reasons[key] = reasons.get(key, 0) + 1
                 continue
-            pose_bytes = canonical(serialize_message(result.pose), POSE_TYPE)
-            covariance_bytes = canonical(serialize_message(result.pose_with_covariance), COVARIANCE_TYPE)
-            replayed[result.stamp_ns] = (pose_bytes, covariance_bytes, result.pose.pose)
+            pose_bytes = canonical(result.pose, POSE_TYPE)
+            covariance_bytes = canonical(result.pose_with_covariance, COVARIANCE_TYPE)
+            replayed[result.stamp_ns] = (pose_bytes, covariance_bytes)
             if writer:
                 writer.write(pose_topic, received_ns, pose_bytes)
                 writer.write(covariance_topic, received_ns, covariance_bytes)
@@ -121,7 +121,8 @@ def replay(bag: str | Path, values: dict, profile_topic: str | None = None, outp
     both = sorted(set(recorded) & set(replayed))
     identical = {s for s in both if recorded[s] == replayed[s][0]
                  and (s not in recorded_covariance or recorded_covariance[s] == replayed[s][1])}
-    differences = [pose_difference(deserialize_message(recorded[s], PoseStamped).pose, replayed[s][2])
+    differences = [pose_difference(deserialize_message(recorded[s], PoseStamped).pose,
+                                   deserialize_message(replayed[s][0], PoseStamped).pose)
                    for s in both if s not in identical]
     report = {
         "bag": str(bag), "profile_topic": profile_topic, "profiles": info.topics[profile_topic].count,
@@ -135,7 +136,7 @@ def replay(bag: str | Path, values: dict, profile_topic: str | None = None, outp
     if truth:
         truth_stamps = np.array(sorted(truth), dtype=np.int64)
         for name, poses in (("recorded", {s: deserialize_message(recorded[s], PoseStamped).pose for s in recorded}),
-                            ("replayed", {s: replayed[s][2] for s in replayed})):
+                            ("replayed", {s: deserialize_message(replayed[s][0], PoseStamped).pose for s in replayed})):
             matched = {s: nearest_stamp(truth_stamps, s, TRUTH_TOLERANCE_NS) for s in sorted(poses)}
             errors = [pose_difference(poses[s], truth[t]) for s, t in matched.items() if t is not None]
             report[f"{name}_error_position_um"] = summary(e[0] * 1e6 for e in errors)

@@ -9,11 +9,20 @@ It is a length. Eq. (17) as printed (a difference of unit-y ridge directions) eq
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from ..model.gauge import Gauge
 from ..model.rotation import nearest_rotation, skew, so3_exp
+
+
+class RidgeLines(Protocol):
+    """The ridges as lines (a gauge, or a subset of its ridges): x = q_x + u y, z = q_z + w y in G."""
+
+    q: np.ndarray  # (n, 3) ridge points in the y = 0 plane
+    u: np.ndarray  # (n,)
+    w: np.ndarray  # (n,)
 
 
 @dataclass(frozen=True)
@@ -39,7 +48,8 @@ def reason_cf_rank(n: int, rank: int) -> str:
     return f"closed form is underdetermined with {n} corners (rank {rank} < 9)"
 
 
-def corner_residuals(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+def corner_residuals(gauge: RidgeLines, corners: np.ndarray, rotation: np.ndarray, translation: np.ndarray
+                     ) -> np.ndarray:
     mapped = corners[:, :1] * rotation[:, 0] + corners[:, 1:] * rotation[:, 2] + translation
     return np.column_stack([
         mapped[:, 0] - gauge.u * mapped[:, 1] - gauge.q[:, 0],
@@ -47,7 +57,7 @@ def corner_residuals(gauge: Gauge, corners: np.ndarray, rotation: np.ndarray, tr
     ])
 
 
-def closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
+def closed_form(gauge: RidgeLines, corners: np.ndarray) -> PoseSolution:
     """Paper eqs. (9)-(14): solve the stacked 2n x 9 system by SVD, then project onto SE(3)."""
     a, b = _system(gauge, corners)
     x, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
@@ -56,7 +66,7 @@ def closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
     return _pose_from_m(gauge, corners, x)
 
 
-def _system(gauge: Gauge, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _system(gauge: RidgeLines, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The stacked 2n x 9 system A x = b of eqs. (9)-(10)."""
     n = len(corners)
     p = np.column_stack([corners[:, 0], corners[:, 1], np.ones(n)])  # [px, pz, 1]
@@ -71,7 +81,7 @@ def _system(gauge: Gauge, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
-def _pose_from_m(gauge: Gauge, corners: np.ndarray, x: np.ndarray) -> PoseSolution:
+def _pose_from_m(gauge: RidgeLines, corners: np.ndarray, x: np.ndarray) -> PoseSolution:
     """Eqs. (12)-(14): rows of M = [r1 r3 t] -> nearest rotation, rescaled translation."""
     m = x.reshape(3, 3)
     r1, r3, t_hat = m[:, 0], m[:, 1], m[:, 2]
@@ -91,7 +101,7 @@ def paper_closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
     return _pose_from_m(gauge, corners, np.linalg.lstsq(a, b, rcond=None)[0])
 
 
-def four_ridge_candidates(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
+def four_ridge_candidates(gauge: RidgeLines, corners: np.ndarray) -> list[PoseSolution]:
     """Starting poses for n = 4, where A x = b leaves one free direction: x = x0 + alpha v.
 
     alpha is fixed by the rotation constraints |r1| = |r3| = 1, r1 . r3 = 0: their squared violation is
@@ -121,7 +131,7 @@ def four_ridge_candidates(gauge: Gauge, corners: np.ndarray) -> list[PoseSolutio
     return candidates
 
 
-def _ridge_rows(gauge: Gauge) -> np.ndarray:
+def _ridge_rows(gauge: RidgeLines) -> np.ndarray:
     """(n, 2, 3) C_i with r_i = C_i P_i - q_i: the x and z offsets from ridge i at P's y."""
     n = len(gauge.u)
     c = np.zeros((n, 2, 3))
@@ -180,12 +190,12 @@ TRIAGE_MARGIN = 1.5  # a triaged start this much above the best is not refined f
 
 
 @dataclass(frozen=True)
-class _Ridges:
-    """A subset of a gauge's ridges, enough for four_ridge_candidates()."""
+class RidgeSubset:
+    """Some of a gauge's ridges (RidgeLines), for four_ridge_candidates() on a subset."""
 
+    q: np.ndarray
     u: np.ndarray
     w: np.ndarray
-    q: np.ndarray
 
 
 def subset_starts(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
@@ -200,7 +210,7 @@ def subset_starts(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
     subsets = [[(k + j) % n for j in range(4)] for k in range(min(n, MAX_SUBSETS))]
     starts = []
     for subset in subsets:
-        ridges = _Ridges(gauge.u[subset], gauge.w[subset], gauge.q[subset])
+        ridges = RidgeSubset(gauge.q[subset], gauge.u[subset], gauge.w[subset])
         try:
             candidates = four_ridge_candidates(ridges, corners[subset])
         except (SolverError, np.linalg.LinAlgError):

@@ -90,8 +90,8 @@ def decode_twist_cdr(data: bytes) -> tuple[int, str, np.ndarray]:
 
 
 class SerializedPosePair:
-    """What nodes.messages.PoseMessagePair is for the replay, as bytes for a publisher: fill(), then
-    `pose` and `with_covariance`."""
+    """The estimator's two poses as the bytes a publisher sends, refilled for every estimate: fill(), then
+    `pose` and `with_covariance` (the node publishes them, the replay compares them with a bag's)."""
 
     def __init__(self) -> None:
         self.pose = b""
