@@ -20,6 +20,8 @@ from .stages import detect_corners, refine_pose
 
 
 def check_solution(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, options: EstimatorOptions) -> str:
+    """Why a solution is no pose ("" if it is one): not finite, corners missing their ridges by more than the
+    bound, or corners mapped off the gauge's footprint (the checks the compiled one-call path makes too)."""
     if not (np.all(np.isfinite(solution.rotation)) and np.all(np.isfinite(solution.translation))):
         return REASON_NOT_FINITE
     error = solution.reprojection_error
