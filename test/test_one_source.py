@@ -80,6 +80,24 @@ def test_refusals_say_why(gauge, rng):
     assert not bad_shape.ok and "(N, 2)" in bad_shape.reason
 
 
+def test_the_core_runs_with_numpy_alone(gauge) -> None:
+    """DESIGN.md: the core needs no more than numpy. Without numba the same source runs uncompiled."""
+    code = ("import sys; sys.modules['numba'] = None\n"  # an import of numba now fails, as when not installed
+            "import numpy as np\n"
+            "from profile_pose_ros.core import Gauge, estimate_pose, render_profile, sample_pose\n"
+            "from profile_pose_ros.core.compiled import loader\n"
+            f"gauge = Gauge.from_yaml({str(gauge.source)!r})\n"
+            "rotation, t = sample_pose(gauge, np.random.default_rng(1))\n"
+            "e = estimate_pose(render_profile(gauge, rotation, t), gauge)\n"
+            "print(loader.kernel_name(), '|', e.ok, float(np.max(np.abs(e.t - t))))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={k: v for k, v in os.environ.items() if k != "PROFILE_POSE_KERNEL"})
+    assert run.returncode == 0, run.stderr
+    name, verdict = run.stdout.strip().rsplit("|", 1)
+    ok, error = verdict.split()
+    assert name.strip() == "uncompiled (python)" and ok == "True" and float(error) < 1e-9
+
+
 def test_an_unknown_kernel_choice_is_refused() -> None:
     run = subprocess.run([sys.executable, "-c", "from profile_pose_ros.core.compiled import loader; loader.kernels()"],
                          capture_output=True, text=True, timeout=120,

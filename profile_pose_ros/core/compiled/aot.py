@@ -27,7 +27,7 @@ from pathlib import Path
 
 MODULE = "profile_pose_estimator_aot"
 SOURCES = ("compiled/estimate_kernel.py", "compiled/codes.py", "compiled/dense_kernel.py", "compiled/decode_kernel.py",
-           "model/sym3.py")
+           "compiled/kernel.py", "model/sym3.py")
 
 
 def cache_root() -> Path:

@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
-
 from .codes import ALL_INVALID, DECODED, INFINITE, JIT, OFF_PLANE
+from .kernel import kernel
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def decode_xz(table, x_col, y_col, z_col, out):
     """table: (N, point_step / 4) float32; y_col < 0 when there is no y field. Fills out (N, 2) float64
     with [x, z], NaN in both where either is NaN (valid only when the status is DECODED). Returns (status, count)."""

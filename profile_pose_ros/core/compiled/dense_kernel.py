@@ -8,15 +8,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
-from .estimate_kernel import _cholesky, _cholesky_solve, _matmul3, _so3_exp, _spd_inverse
 from .codes import JIT, OK, SINGULAR
+from .estimate_kernel import _cholesky, _cholesky_solve, _matmul3, _so3_exp, _spd_inverse
+from .kernel import kernel
 
 STEP_TOLERANCE = 1e-13  # as dense.refine_dense: stop once no step component exceeds it
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _inliers(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor,
              jac, residual):
     """Fill the first rows of jac (N, 6) and residual (N) with the usable, inlying points (dense.py's
@@ -81,7 +81,7 @@ def _inliers(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, 
     return kept
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _normal(jac, residual, count, hessian, gradient):
     """hessian = J^T J and gradient = J^T r over the first `count` rows. The 27 sums live in locals (in
     registers): accumulated in the output arrays, each was a chain through memory at every point."""
@@ -108,7 +108,7 @@ def _normal(jac, residual, count, hessian, gradient):
     gradient[0], gradient[1], gradient[2], gradient[3], gradient[4], gradient[5] = g0, g1, g2, g3, g4, g5
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, noise_std, margin, threshold,
                  floor, iterations, rot_out, t_out, cov_out):
     """dense.refine_dense: returns (status, points used, sigma); rot_out, t_out, cov_out (over [delta_F, t])."""

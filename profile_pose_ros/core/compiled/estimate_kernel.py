@@ -10,7 +10,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from ..model.sym3 import largest_eigenvalue
 from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, NOT_FINITE, O_EPS,
@@ -19,9 +18,10 @@ from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCR
                     OUTSIDE_FOOTPRINT, REPROJECTION, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS,
                     WRONG_CORNER_COUNT, X_NOT_INCREASING, JIT, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE,
                     POLISH_STEPS)
+from .kernel import kernel
 
 # ----------------------------------------------------------------------------- corner detection
-@njit(**JIT)
+@kernel(**JIT)
 def _first_argmax(values):
     """The first index of max(values), for values >= 0 (no NaN), in two passes that beat one
     compare-and-keep-index pass: the maximum of the bit patterns (non-negative doubles order as their
@@ -36,7 +36,7 @@ def _first_argmax(values):
     return -1  # empty
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _rdp(px, pz, epsilon, keep, stack, scratch):
     n = px.shape[0]
     keep[:n] = False
@@ -85,7 +85,7 @@ def _rdp(px, pz, epsilon, keep, stack, scratch):
             top += 2
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _lane_dot(a, b):
     """sum(a * b) with four accumulators: one accumulator waits on the add's latency at every element."""
     m = a.shape[0]
@@ -102,7 +102,7 @@ def _lane_dot(a, b):
     return (s0 + s1) + (s2 + s3)
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _lane_sums(a, b):
     """(sum(a), sum(b)) in one pass, four accumulators each (see _lane_dot)."""
     m = a.shape[0]
@@ -125,7 +125,7 @@ def _lane_sums(a, b):
     return (a0 + a1) + (a2 + a3), (b0 + b1) + (b2 + b3)
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _fit_line(px, pz, first, last, opt, out, k, work, index_work):
     """Fill out[k] = (first, last, slope, x_mean, z_mean, sxx, n_used, sigma, x_min, x_max).
 
@@ -241,7 +241,7 @@ def _fit_line(px, pz, first, last, opt, out, k, work, index_work):
     out[k, 9] = px[last]
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
     """Corner detection; returns (status, n_lines, fit_rms). info carries numbers for the reason; lines_out
     ((n_corners + 1, 10), rows as _fit_line's) gets the face fits when it succeeds."""
@@ -364,7 +364,7 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
 
 
 # ----------------------------------------------------------------------------- pose
-@njit(**JIT)
+@kernel(**JIT)
 def _residuals(q, u, w, corners, rot, t, r):
     for i in range(corners.shape[0]):
         px = corners[i, 0]
@@ -376,7 +376,7 @@ def _residuals(q, u, w, corners, rot, t, r):
         r[2 * i + 1] = mz - w[i] * my - q[i, 2]
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _jacobian(u, w, corners, rot, jac):
     """d r / d [delta, t] for R <- R exp([delta]x): rows C_i [-R [p]x, I]."""
     for i in range(corners.shape[0]):
@@ -407,7 +407,7 @@ def _jacobian(u, w, corners, rot, jac):
         jac[2 * i + 1, 5] = 1.0
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _residual_covariance(u, w, rot, corner_cov, out):
     """out = M C M^T with M block-diagonal, M_i = C_i R[:, (0, 2)] (see solver.residual_covariance)."""
     n = u.shape[0]
@@ -428,7 +428,7 @@ def _residual_covariance(u, w, rot, corner_cov, out):
                     out[2 * i + a, 2 * j + b] = acc
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _cholesky(a, low):
     """low = L with a = L L^T; False if a is not positive definite."""
     n = a.shape[0]
@@ -449,7 +449,7 @@ def _cholesky(a, low):
     return True
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _cholesky_solve(low, b, x):
     n = b.shape[0]
     for i in range(n):
@@ -464,7 +464,7 @@ def _cholesky_solve(low, b, x):
         x[i] = s / low[i, i]
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _spd_inverse(a, out):
     """out = a^-1 for a symmetric positive definite a, as L^-T L^-1 from its Cholesky factor (half the
     work of n triangular solves); False if a is not positive definite."""
@@ -490,7 +490,7 @@ def _spd_inverse(a, out):
     return True
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _normal_equations(jac, weight, r, jw, hessian, gradient):
     n2 = jac.shape[0]
     for a in range(6):
@@ -511,7 +511,7 @@ def _normal_equations(jac, weight, r, jw, hessian, gradient):
         gradient[a] = acc
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _matmul(a, b, out, transpose_b):
     """out = a @ b (or a @ b.T) for the small matrices here, without a BLAS call's overhead."""
     rows, inner = a.shape
@@ -524,14 +524,14 @@ def _matmul(a, b, out, transpose_b):
             out[i, j] = acc
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _matmul3(a, b, out):
     for i in range(3):
         for j in range(3):
             out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _so3_exp(v, out):
     """Rodrigues: I + a K + b K^2 with K = [v]x, written out (no temporaries: it runs every iteration)."""
     x, y, z = v[0], v[1], v[2]
@@ -553,7 +553,7 @@ def _so3_exp(v, out):
     out[2, 1] = a * x + b * y * z
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _quadratic(r, weight):
     n = r.shape[0]
     acc = 0.0
@@ -565,7 +565,7 @@ def _quadratic(r, weight):
     return acc
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _householder_lstsq(a, b, x):
     """Least-squares solution of a x = b (rows >= columns) by Householder QR; returns the numerical rank."""
     m, n = a.shape
@@ -619,7 +619,7 @@ def _householder_lstsq(a, b, x):
     return rank
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _polar_rotation(m, out):
     """out = U V^T of m = U S V^T (the rotation nearest m) by Newton's polar iteration A <- (A + A^-T) / 2,
     when det(m) > 0 and it converges: the same rotation as the SVD's to rounding, without a LAPACK call
@@ -648,7 +648,7 @@ def _polar_rotation(m, out):
     return False
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _closed_form(q, u, w, corners, info):
     """Paper eqs. (9)-(14), the least squares by Householder QR. Returns (status, R, t)."""
     n = corners.shape[0]
@@ -702,7 +702,7 @@ def _closed_form(q, u, w, corners, info):
     return OK, rot, t
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, cov_out):
     """Levenberg-Marquardt + Gauss-Newton polish (unless polish is False) on SO(3) x R^3 (see solver.refine).
 
@@ -806,7 +806,7 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
     return OK, rot, t, r, iterations
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _unstack_residuals(r, out):
     """(2n,) -> (n, 2) residuals; returns their mean norm (the reprojection error)."""
     n = out.shape[0]
@@ -818,13 +818,13 @@ def _unstack_residuals(r, out):
     return total / n
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
     """corners.detect_corners() compiled (the numpy path's stages and the studies call it per profile)."""
     return _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out)
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, rot_out, t_out, r_out,
                 cov_out):
     """solver.refine() compiled, for the basin search and the four-ridge starts. Returns (status, iterations);
@@ -837,10 +837,10 @@ def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, 
     return status, iterations
 
 
-_largest_eigenvalue = njit(**JIT)(largest_eigenvalue)
+_largest_eigenvalue = kernel(**JIT)(largest_eigenvalue)
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def _position_sigma(cov):
     """estimator.position_sigma of cov[:3, :3], compiled: every accepted pose is checked against it."""
     a, b, c, d, e, f = cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 1], cov[1, 2], cov[2, 2]
@@ -850,7 +850,7 @@ def _position_sigma(cov):
     return math.sqrt(max(_largest_eigenvalue(a, b, c, d, e, f), 0.0))
 
 
-@njit(**JIT)
+@kernel(**JIT)
 def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
              info):
     """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,

@@ -3,11 +3,12 @@
 The prebuilt extension (aot.py) when it can be built on this machine, else numba's JIT of the same
 source. PROFILE_POSE_KERNEL=aot|jit|auto (default auto) forces a choice; PROFILE_POSE_KERNEL=python runs
 the very same source uncompiled, as plain Python and numpy (about 100x slower: for stepping through it in
-a debugger, or a study that wants to print from inside a stage). Decoding a profile needs only this module
-and decode_kernel, never the estimator.
+a debugger, or a study that wants to print from inside a stage); without numba installed that is what
+runs. Decoding a profile needs only this module and decode_kernel, never the estimator.
 """
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
 from types import SimpleNamespace
@@ -15,6 +16,9 @@ from types import SimpleNamespace
 import numpy as np
 
 from . import aot
+
+# looked up, not imported: a process on the prebuilt kernel never loads numba (its LLVM costs ~130 MiB)
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 
 CHOICES = ("auto", "aot", "jit", "python")
 _kernels = None
@@ -29,7 +33,7 @@ def kernels():
         choice = os.environ.get("PROFILE_POSE_KERNEL", "auto")
         if choice not in CHOICES:
             raise RuntimeError(f"PROFILE_POSE_KERNEL={choice!r}: expected one of {', '.join(CHOICES)}")
-        module = aot.load() if choice in ("auto", "aot") else None
+        module = aot.load() if choice in ("auto", "aot") and HAVE_NUMBA else None
         if module is not None:
             _kernels, _kernel_name = module, "prebuilt (aot)"
         elif choice == "aot":
@@ -44,7 +48,7 @@ def kernels():
             _kernels = SimpleNamespace(estimate=estimate_kernel.estimate, detect=estimate_kernel.detect,
                                        refine_pose=estimate_kernel.refine_pose, decode_xz=jit_decode_xz,
                                        refine_dense=refine_dense)
-            _kernel_name = "uncompiled (python)" if choice == "python" else "numba jit"
+            _kernel_name = "numba jit" if HAVE_NUMBA and choice != "python" else "uncompiled (python)"
     return _kernels
 
 
@@ -53,7 +57,9 @@ KERNEL_MODULES = tuple(f"{__package__}.{name}" for name in ("estimate_kernel", "
 
 def _uncompiled() -> None:
     """numba decides at decoration time whether @njit compiles: switched off before the kernels are imported,
-    their functions stay plain Python calling plain Python."""
+    their functions stay plain Python calling plain Python. (Without numba they always are.)"""
+    if not HAVE_NUMBA:
+        return
     import numba
 
     loaded = [name for name in KERNEL_MODULES if name in sys.modules]
@@ -71,7 +77,7 @@ def kernel_name() -> str:
 def will_compile() -> bool:
     """Whether the kernels' first use in a process will compile them (a minute or more): the prebuilt
     kernel is wanted and this machine has no build of these sources yet."""
-    return os.environ.get("PROFILE_POSE_KERNEL", "auto") in ("auto", "aot") and not aot.is_current()
+    return HAVE_NUMBA and os.environ.get("PROFILE_POSE_KERNEL", "auto") in ("auto", "aot") and not aot.is_current()
 
 
 def decode_xz(table: np.ndarray, x_col: int, y_col: int, z_col: int, out: np.ndarray) -> tuple[int, int]:

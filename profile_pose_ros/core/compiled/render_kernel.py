@@ -5,13 +5,13 @@ emitter's shadow and the measurement range in the same compiled call."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from ..model.gauge import Gauge
 from ..model.render import ProfilerModel
+from .kernel import kernel
 
 
-@njit(cache=True, fastmath=False)
+@kernel(cache=True, fastmath=False)
 def _trace(x, t, r0, direction, normals, offsets, ridge_q, ridge_u, half_w, half_l, base_z):  # pragma: no cover
     """Ray i starts at t + x[i] r0. Per face, what does not depend on the ray is computed once:
     the ray's slope to the face and the face's distance along it as a + x b (3x fewer flops)."""
@@ -71,7 +71,7 @@ def _trace(x, t, r0, direction, normals, offsets, ridge_q, ridge_u, half_w, half
     return out
 
 
-@njit(cache=True, fastmath=False)
+@kernel(cache=True, fastmath=False)
 def _shadow_and_range(x, z, occlusion, emitter_z, z_near, z_far, half_near, half_slope):  # pragma: no cover
     """render.shadow_mask (if occlusion) and ProfilerModel.in_range, in place, with the same arithmetic;
     x ascending."""

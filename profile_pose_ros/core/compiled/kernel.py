@@ -1,0 +1,17 @@
+"""The kernels' decorator: numba's njit where numba is installed, else the plain Python function, so the
+core still runs, uncompiled, with numpy alone (DESIGN.md: studies and notebooks need no more than numpy).
+"""
+from __future__ import annotations
+
+try:
+    from numba import njit as _njit
+except ImportError:  # the core without numba: every kernel runs as plain Python
+    _njit = None
+
+
+
+def kernel(**options):
+    """@njit(**options) with numba; the function itself without."""
+    def decorate(function):
+        return function if _njit is None else _njit(**options)(function)
+    return decorate
