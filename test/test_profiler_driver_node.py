@@ -108,26 +108,36 @@ def test_streams_every_profile_stamped_with_its_trigger(rig_factory) -> None:
     rig.wait_ready()
     rig.run(200.0, 200)
     c = rig.link.counters
-    assert (c.published, c.dropped, c.bad_frames, c.unsynced) == (200, 0, 0, 0)
+    # every profile published with its trigger's time, or (a loaded runner's slow PINGs) dropped because the
+    # clock map could not vouch for it: never one with a stamp it could not vouch for
+    assert (c.published + c.unconfirmed, c.dropped, c.bad_frames, c.unsynced) == (200, 0, 0, 0)
+    assert c.unconfirmed <= 20
     # paired with the right trigger: the profile is the one rendered at that trigger's pose (it moves)
-    assert rig.check_published_against_truth(stamp_tolerance=1e-3) == 200
+    assert rig.check_published_against_truth(stamp_tolerance=1e-3) == c.published
     clock = rig.link.trigger.clock  # PINGs keep feeding it; a few seconds of samples fix the slope
     assert rig.ros.spin_until(lambda: clock.span > 4.0, 8.0)
     assert abs(clock.drift_ppm - 300.0) < 50.0  # the simulated MCU's resonator (sharing this process's GIL)
 
 
+# Tests of counting, not of stamp quality, run the driver with a USB serial adapter's stamp bound (3 ms, as
+# config/hardware.yaml): a loaded runner's slow PINGs then leave (almost) no profile unconfirmed (21 of 400
+# and 213 of 349 at the default 0.2 ms in two clean-clone CI runs), and any that remain are counted.
+COUNTING = {"max_stamp_error": 3e-3}
+
+
 def test_drop_count_equals_the_devices(rig_factory) -> None:
-    rig = rig_factory()
+    rig = rig_factory(**COUNTING)
     rig.cell.profiler.faults.drop_fraction = 0.03
     rig.wait_ready()
     rig.run(200.0, 400)
     assert rig.cell.profiler.frames_dropped > 0
-    assert rig.link.counters.dropped == rig.cell.profiler.frames_dropped
-    assert rig.link.counters.published == 400 - rig.cell.profiler.frames_dropped
+    c = rig.link.counters
+    assert c.dropped == rig.cell.profiler.frames_dropped
+    assert c.published + c.unconfirmed == 400 - rig.cell.profiler.frames_dropped and c.unconfirmed <= 40
 
 
 def test_damaged_frames_are_counted_and_never_published(rig_factory) -> None:
-    rig = rig_factory()
+    rig = rig_factory(**COUNTING)
     rig.cell.profiler.faults.corrupt_fraction = 0.1
     rig.wait_ready()
     rig.run(150.0, 300)
@@ -135,14 +145,12 @@ def test_damaged_frames_are_counted_and_never_published(rig_factory) -> None:
     assert rig.cell.profiler.frames_corrupted > 0 and c.bad_frames >= rig.cell.profiler.frames_corrupted
     # every trigger accounted for; a trigger line that missed sync_timeout on a loaded machine is a counted
     # drop of its own (late_lines: seen once in a clean-clone CI run, 1 of 300), never a published profile
-    assert c.published + c.dropped + c.late_lines == 300 and c.late_lines <= 3
+    assert c.published + c.dropped + c.late_lines + c.unconfirmed == 300 and c.late_lines <= 3 and c.unconfirmed <= 30
     rig.check_published_against_truth()
 
 
 def test_reconnects_within_a_second_when_the_device_closes(rig_factory) -> None:
-    # This test is about reconnects, not stamp quality: a USB adapter's bound (3 ms) keeps a loaded runner's
-    # slow PINGs (a clean-clone CI run: 213 of 349 profiles over the default 0.2 ms) from hiding them
-    rig = rig_factory(max_stamp_error=3e-3)
+    rig = rig_factory(**COUNTING)
     rig.cell.profiler.faults.close_after_frames = 60
     rig.wait_ready()
     rig.run(100.0, 400)
@@ -191,7 +199,8 @@ def test_serial_garbage_is_counted_and_stamps_stay_synced(rig_factory) -> None:
     rig.wait_ready()
     rig.run(100.0, 150)
     assert rig.link.trigger.bad_lines > 0
-    assert rig.link.counters.unsynced == 0 and rig.link.counters.published == 150
+    c = rig.link.counters
+    assert c.unsynced == 0 and c.published + c.unconfirmed == 150 and c.unconfirmed <= 15
     rig.check_published_against_truth()
 
 
