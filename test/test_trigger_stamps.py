@@ -4,17 +4,13 @@ from __future__ import annotations
 
 import pytest
 
+from profile_pose_ros.devices.profiler_link import LinkSettings
 from profile_pose_ros.tools.stamp_check import FAULTS, busy_processes, gap_flaws, one_start
 
 PERIOD = 0.012  # sim_cell's default control period, which triggers the profiler
-TOLERANCE = 2e-4
-# The clock map's bound covers its offset, not its slope's extrapolation (~0.09 ms seen in the first seconds
-# under load: a full-suite run found a gap 0.238 ms off with the driver at 0.15 ms). Fresh starts run the
-# driver at 0.1 ms, which keeps every gap within 0.2 ms; the reconnect runs, whose map starts over at each
-# MCU restart, at 0.15 ms, where 0.1 ms left one clean-clone run 20 stamps in 9 s (the known leftover of
-# issue 30: a bound that counts the slope's uncertainty would serve both).
-FRESH_DRIVER = {"max_stamp_error": 1e-4}
-RECONNECT_DRIVER = {"max_stamp_error": 1.5e-4}
+# The driver publishes a stamp only while the clock map bounds its error, either way, within max_stamp_error
+# (its default here): two neighbours' gap is then within twice that of a whole number of periods.
+TOLERANCE = 2 * LinkSettings().max_stamp_error
 
 
 def assert_periodic(run: dict) -> None:
@@ -36,14 +32,14 @@ def cpu_load():
 
 def test_fresh_starts_under_load_stamp_every_profile_a_whole_number_of_periods_apart(tmp_path, cpu_load) -> None:
     for start in range(3):
-        assert_periodic(one_start(tmp_path / f"start{start}", 3.0, True, {}, FRESH_DRIVER))
+        assert_periodic(one_start(tmp_path / f"start{start}", 3.0, True, {}, {}))
 
 
 @pytest.mark.parametrize("fault, every, seconds", [("profiler", 100, 5.0), ("mcu", 300, 9.0),
                                                    ("mcu_reboot", 300, 9.0)])
 def test_stamps_stay_periodic_across_reconnects_and_mcu_restarts(tmp_path, cpu_load, fault, every,
                                                                  seconds) -> None:
-    run = one_start(tmp_path, seconds, True, {FAULTS[fault]: every}, RECONNECT_DRIVER)
+    run = one_start(tmp_path, seconds, True, {FAULTS[fault]: every}, {})
     assert_periodic(run)
     happened = {"profiler": "profiler_closes", "mcu": "mcu_closes", "mcu_reboot": "mcu_reboots"}[fault]
     assert int(run["cell"][happened]) >= 2, run["cell"]

@@ -121,7 +121,7 @@ def pings_and_triggers(seconds: float, drift_ppm: float, seed: int, pong_delay_m
         lines.append((host, delay, np.inf))
     for host in np.arange(0.005, seconds, 0.02):
         delay = rng.uniform(*pong_delay_ms) * 1e-3
-        lines.append((host, delay, delay + rng.uniform(20e-6, 300e-6)))
+        lines.append((host, delay, rng.uniform(20e-6, 300e-6)))  # the PING's way out
     lines.sort()
     host = np.array([h for h, _, _ in lines]) + 1.79e9
     arrival = host + np.array([d for _, d, _ in lines])
@@ -131,7 +131,7 @@ def pings_and_triggers(seconds: float, drift_ppm: float, seed: int, pong_delay_m
             if h <= stalled_until:
                 arrival[k] = max(arrival[k], stalled_until)
     device = 4000.0 + (host - host[0]) * (1 + drift_ppm * 1e-6)
-    return device, arrival, host, np.array([b for _, _, b in lines])
+    return device, arrival, host, arrival - host + np.array([b for _, _, b in lines])  # a round trip, stall and all
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -146,7 +146,7 @@ def test_clock_map_error_bound_holds_for_every_line(seed: int) -> None:
         clock.add(d, a, b)
         if clock.error_bound < np.inf:
             bounded += 1
-            assert -1e-9 <= clock.to_host(d) - h <= clock.error_bound + 20e-6
+            assert abs(clock.to_host(d) - h) <= clock.error_bound + 1e-9
     assert bounded > 0.5 * len(device)
 
 
@@ -166,13 +166,26 @@ def test_clock_map_bounds_nothing_until_converged_nor_from_slow_pongs() -> None:
 
 
 def test_clock_map_bound_expires_with_the_samples_that_set_the_offset() -> None:
+    """PONGs for 3 s, then none: once the last one is out of the recent window, nothing bounds the offset."""
     clock = ClockMap()
-    device, arrival, _ = simulated_samples(100.0, 3.0, 0.0)
-    for k, (d, a) in enumerate(zip(device, arrival)):
-        clock.add(d, a, 1e-4 if k == 100 else np.inf)  # one PONG at 1.0 s
-    assert clock.error_bound == pytest.approx(1e-4)
-    clock.add(device[-1] + 1.5, arrival[-1] + 1.5)  # 3.5 s after it: out of the recent window
+    device, arrival, host = simulated_samples(100.0, 6.5, 0.0)
+    for d, a, h in zip(device, arrival, host):
+        bound = a - h + 1e-4 if d - device[0] < 3.0 else np.inf
+        clock.add(d, a, bound)
+        if d - device[0] < 3.0:
+            three_seconds = clock.error_bound
+    assert three_seconds < 2e-4
     assert clock.error_bound == np.inf
+
+
+def test_clock_map_bound_needs_pongs_early_and_late() -> None:
+    """One bounded sample bounds the offset but not the slope: carried over seconds, the map's error is
+    unknown, and the map says so."""
+    clock = ClockMap()
+    device, arrival, host = simulated_samples(100.0, 3.0, 0.0)
+    for k, (d, a, h) in enumerate(zip(device, arrival, host)):
+        clock.add(d, a, a - h + 1e-4 if k == 250 else np.inf)  # one PONG at 2.5 s
+    assert clock.converged and clock.error_bound == np.inf
 
 
 def test_lower_envelope_slope_ignores_points_above_it() -> None:
@@ -235,4 +248,21 @@ def test_clock_map_refuses_a_bound_below_the_samples_own_height() -> None:
     assert clock.bounds_refused == 0
     good = clock.error_bound
     clock.add(device[-1] + 0.01, arrival[-1] + 0.01 + 0.3, 1e-5)  # 300 ms late, claiming 10 us
-    assert clock.bounds_refused == 1 and clock.error_bound == good
+    assert clock.bounds_refused == 1 and clock.error_bound == pytest.approx(good, abs=1e-6)
+
+
+def test_clock_map_drops_a_false_bound_the_others_contradict() -> None:
+    """The first PONG, 5 ms late, claims a 10 us round trip (paired with the wrong PING) before any map
+    could refuse it. The other PONGs contradict it: it is dropped, and the bound holds for every line."""
+    clock = ClockMap()
+    device, arrival, host, bounds = pings_and_triggers(5.0, 300.0, 2, (0.03, 0.3), bursts=False)
+    first_pong = int(np.flatnonzero(np.isfinite(bounds))[0])
+    arrival[first_pong] += 5e-3
+    bounds[first_pong] = 1e-5
+    bounded = 0
+    for d, a, h, b in zip(device, arrival, host, bounds):
+        clock.add(d, a, b)
+        if clock.error_bound < np.inf:
+            bounded += 1
+            assert abs(clock.to_host(d) - h) <= clock.error_bound + 1e-9
+    assert clock.bounds_contradicted >= 1 and bounded > 0.3 * len(device)

@@ -53,8 +53,9 @@ PARAMETERS = [
     Param("sync_timeout", 0.02, "How long a profile may wait for its trigger line (s).", 0.0, 0.1,
           read_only=True),
     Param("max_stamp_error", 2e-4, "A profile is published with its trigger's time only while the MCU clock map "
-          "bounds that time this closely (s): the fastest recent PING round trip. Others are dropped and counted "
-          "(a map still settling moves between triggers). A USB serial adapter needs its round trip here.",
+          "bounds that time this closely, either way (s): about the fastest recent PING round trip, plus the drift "
+          "estimate's error carried over the seconds since. Others are dropped and counted (a map still settling "
+          "moves between triggers). A USB serial adapter needs its round trip here.",
           1e-5, 0.05, read_only=True),
     Param("frame_id", "profiler", "frame_id of the published profiles (the profiler frame F).", read_only=True),
     Param("max_input_age", 1.0, "Reconnect when the device sends nothing for this long (s); 0 disables "

@@ -7,11 +7,13 @@ against device time, with a slope for the MCU oscillator's drift (a ceramic reso
 A mean-based fit would add the average scheduling delay to every stamp; the envelope adds only the
 smallest one, which the link then estimates from PING round trips and subtracts.
 
-How late the map can be is known only from samples with a known bound on their own delay: a PONG's
-delay is at most its PING's round trip (the MCU read its clock after the PING arrived). The map carries
-the smallest such bound among the samples that set its offset (`error_bound`); stamps are trusted only
-while it is small, because a map still settling moves between two triggers, and profiles stamped in that
-time get gaps that are not whole trigger periods (or, with a burst of late lines, one stamp twice).
+How far off the map can be is known only from samples with a known bound on their own delay: a PONG's
+delay is at most its PING's round trip (the MCU read its clock after the PING arrived), so the true line
+passes between the PONG's time and that time less its bound. Two such PONGs far apart bound the true
+slope; with it, `error_bound` bounds the map's error now on both sides: its offset's (what a bounded
+sample allows) plus its slope's error carried from the samples that set the offset. Stamps are trusted
+only while it is small, because a map still settling moves between two triggers, and profiles stamped in
+that time get gaps that are not whole trigger periods (or, with a burst of late lines, one stamp twice).
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ import numpy as np
 
 
 CHUNK_S = 0.1  # s of samples per envelope candidate (their least-delayed one)
+BOUND_CHUNK_S = 0.5  # s of bounded samples per slope-bound candidate (their tightest one)
 MIN_CHUNKS = 10
 
 
@@ -110,18 +113,26 @@ class ClockMap:
         self.converged_after_s = converged_after_s
         self.max_drift = max_drift  # a ceramic resonator is within 0.5 %
         self._samples = SampleWindow()
-        self._bounds: deque[tuple[float, float]] = deque()  # (device s, delay bound s), bounds increasing
+        self._bounded: deque[tuple[float, float, float]] = deque()  # (device, host, delay bound) in the window
         self._ref: tuple[float, float] | None = None
         self._fit: tuple[float, float] | None = None  # (intercept, slope) relative to _ref
         self._fitted_at = -np.inf
+        self._forget_bounds()
         self.resets = 0
         self.bounds_refused = 0
+        self.bounds_contradicted = 0
+
+    def _forget_bounds(self) -> None:
+        self._slope_error = np.inf  # the most the map's slope can be off the true one
+        self._late_anchor = np.inf  # min over the offset's bounded samples of (bound - slope_error * device)
+        self._offset_set_at = np.inf  # device time of the sample that set the offset
 
     def reset(self) -> None:
         self._samples.clear()
-        self._bounds.clear()
+        self._bounded.clear()
         self._ref = self._fit = None
         self._fitted_at = -np.inf
+        self._forget_bounds()
         self.resets += 1
 
     @property
@@ -139,14 +150,19 @@ class ClockMap:
 
     @property
     def error_bound(self) -> float:
-        """How much later than the true host time the map may put a device time now (s): the smallest
-        delay bound among the samples of the recent window (inf before convergence or without one)."""
-        if not self.converged:
+        """How far (s, either way) the map may put the newest device time from its true host time (inf
+        before convergence, or without bounded samples early and late in the window).
+
+        The map lies under every sample of its offset's set, so at a bounded sample p it is at most b_p
+        late, and carried to now with a slope at most `slope_error` off, at most b_p + slope_error * age_p
+        late. The true line lies under every sample too, the one that set the offset (s) included, so the
+        map is at most slope_error * age_s early."""
+        if not self.converged or self._slope_error == np.inf:
             return float("inf")
         newest = self._samples.last_device()
-        while self._bounds and self._bounds[0][0] < newest - self.recent_s:
-            self._bounds.popleft()
-        return self._bounds[0][1] if self._bounds else float("inf")
+        late = self._late_anchor + self._slope_error * newest
+        early = self._slope_error * (newest - self._offset_set_at)
+        return float(max(late, early))
 
     def add(self, device_s: float, host_s: float, delay_bound: float = float("inf")) -> None:
         """A sample: the device time of a line and the host time it was sent; delay_bound, if known, is
@@ -158,22 +174,28 @@ class ClockMap:
             self.reset()  # the device restarted or its clock was set: start over
             self._ref = (device_s, host_s)
         d, h = device_s - self._ref[0], host_s - self._ref[1]
-        if delay_bound < float("inf") and self._fit is not None and h - (self._fit[0] + self._fit[1] * d) > delay_bound:
-            # Its height above the map is at most its true delay (the map is never below the truth): a
-            # bound below that height is false, e.g. a PONG paired with a later PING than it answered.
+        if delay_bound < float("inf") and self._fit is not None and (
+                h - (self._fit[0] + self._fit[1] * d) > delay_bound + self.error_bound):
+            # Its height above the map is at most its true delay plus how early the map may be: a bound
+            # below that is false, e.g. a PONG paired with a later PING than it answered. A map without a
+            # bound refuses none (its slope may be the one that is wrong); the slope range drops the false.
             self.bounds_refused += 1
             delay_bound = float("inf")
         self._samples.append(d, h, self.window_s)
-        if delay_bound < float("inf"):  # a sliding-window minimum: drop the bounds this one beats
-            while self._bounds and self._bounds[-1][1] >= delay_bound:
-                self._bounds.pop()
-            self._bounds.append((d, delay_bound))
+        if delay_bound < float("inf"):
+            self._bounded.append((d, h, delay_bound))
+        while self._bounded and self._bounded[0][0] < d - self.window_s:
+            self._bounded.popleft()
         if self._fit is None or d - self._fitted_at >= self.refit_s:
             self._refit()
             self._fitted_at = d
         else:
             intercept, slope = self._fit
-            self._fit = (min(intercept, h - slope * d), slope)
+            if h - slope * d < intercept:
+                self._fit = (h - slope * d, slope)
+                self._offset_set_at = d
+            if delay_bound < float("inf") and self._slope_error < np.inf:
+                self._late_anchor = min(self._late_anchor, delay_bound - self._slope_error * d)
 
     def _refit(self) -> None:
         d, h = self._samples.arrays()
@@ -185,8 +207,50 @@ class ClockMap:
             first = chunk_minima(chunk, residual)
             slope = 1.0 + lower_envelope_slope(d[first], residual[first])
         slope = float(np.clip(slope, 1.0 - self.max_drift, 1.0 + self.max_drift))
-        recent = d >= d[-1] - self.recent_s
-        self._fit = (float(np.min(h[recent] - slope * d[recent])), slope)
+        low, high = self._slope_range()
+        if low <= high:
+            slope = float(np.clip(slope, low, high))
+            self._slope_error = max(slope - low, high - slope)
+        else:
+            self._slope_error = np.inf
+        recent = np.flatnonzero(d >= d[-1] - self.recent_s)
+        offsets = h[recent] - slope * d[recent]
+        lowest = int(np.argmin(offsets))
+        self._fit = (float(offsets[lowest]), slope)
+        self._offset_set_at = float(d[recent[lowest]])
+        self._late_anchor = np.inf
+        if self._slope_error < np.inf:
+            self._late_anchor = min((b - self._slope_error * bd for bd, _, b in self._bounded
+                                     if bd >= d[-1] - self.recent_s), default=np.inf)
+
+    def _slope_range(self) -> tuple[float, float]:
+        """The true slope's range allowed by the bounded samples: the true line passes within each one's
+        bound below it, so any two apart bound its slope, and it meets every such bound at once. Pairs of
+        the tightest sample of each BOUND_CHUNK_S keep it cheap. (inf, -inf) without a pair.
+
+        An empty range means a false bound (a PONG paired with the wrong PING) among the two pairs that
+        set its ends: their samples are dropped, counted in bounds_contradicted, until the rest agree."""
+        if len(self._bounded) < 2:
+            return np.inf, -np.inf
+        d, h, b = np.array(self._bounded).T
+        tightest = chunk_minima(np.floor((d - d[0]) / BOUND_CHUNK_S).astype(int), b)
+        d, h, b = d[tightest], h[tightest], b[tightest]
+        first, second = np.triu_indices(len(d), 1)
+        apart = d[second] > d[first]
+        first, second = first[apart], second[apart]
+        while len(first):
+            span = d[second] - d[first]
+            lows, highs = (h[second] - b[second] - h[first]) / span, (h[second] - h[first] + b[first]) / span
+            at_low, at_high = int(np.argmax(lows)), int(np.argmin(highs))
+            if lows[at_low] <= highs[at_high]:
+                return float(lows[at_low]), float(highs[at_high])
+            suspects = {first[at_low], second[at_low], first[at_high], second[at_high]}
+            self.bounds_contradicted += 1
+            false_times = {float(d[k]) for k in suspects}
+            self._bounded = deque(sample for sample in self._bounded if sample[0] not in false_times)
+            keep = ~(np.isin(first, list(suspects)) | np.isin(second, list(suspects)))
+            first, second = first[keep], second[keep]
+        return np.inf, -np.inf
 
     def to_host(self, device_s: float) -> float:
         """Host time of a device time; raises RuntimeError before the first sample."""
