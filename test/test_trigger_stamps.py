@@ -13,10 +13,13 @@ PERIOD = 0.012  # sim_cell's default control period, which triggers the profiler
 TOLERANCE = 2 * LinkSettings().max_stamp_error
 
 
+ENOUGH = 60  # stamps per topic, each run: the map may vouch for few at first on a loaded runner; wait for them
+
+
 def assert_periodic(run: dict) -> None:
     for topic in ("profiles", "poses"):
         flaws = gap_flaws(run[topic], PERIOD, TOLERANCE)
-        assert flaws["stamps"] > 50, (topic, flaws, run["driver"])
+        assert flaws["stamps"] >= ENOUGH, (topic, flaws, run["driver"])
         assert flaws["repeated"] == flaws["decreasing"] == flaws["not_whole_periods"] == 0, (topic, str(flaws),
                                                                                            run["driver"])
 
@@ -32,14 +35,14 @@ def cpu_load():
 
 def test_fresh_starts_under_load_stamp_every_profile_a_whole_number_of_periods_apart(tmp_path, cpu_load) -> None:
     for start in range(3):
-        assert_periodic(one_start(tmp_path / f"start{start}", 3.0, True, {}, {}))
+        assert_periodic(one_start(tmp_path / f"start{start}", 3.0, True, {}, {}, at_least=ENOUGH))
 
 
 @pytest.mark.parametrize("fault, every, seconds", [("profiler", 100, 5.0), ("mcu", 300, 9.0),
                                                    ("mcu_reboot", 300, 9.0)])
 def test_stamps_stay_periodic_across_reconnects_and_mcu_restarts(tmp_path, cpu_load, fault, every,
                                                                  seconds) -> None:
-    run = one_start(tmp_path, seconds, True, {FAULTS[fault]: every}, {})
+    run = one_start(tmp_path, seconds, True, {FAULTS[fault]: every}, {}, at_least=ENOUGH)
     assert_periodic(run)
     happened = {"profiler": "profiler_closes", "mcu": "mcu_closes", "mcu_reboot": "mcu_reboots"}[fault]
     assert int(run["cell"][happened]) >= 2, run["cell"]
