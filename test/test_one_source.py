@@ -75,7 +75,7 @@ def test_refusals_say_why(gauge, rng):
         estimate = estimate_pose(points, gauge)
         assert not estimate.ok and not np.any(np.isfinite(estimate.t))
         reasons.add(estimate.reason.split(":")[0] if estimate.reason.startswith("corner") else estimate.reason)
-    assert {"corner detection"} <= reasons and any("reprojection" in r for r in reasons)
+    assert {"corner detection"} <= reasons and any("reprojection" in r or "noise explains" in r for r in reasons)
     bad_shape = estimate_pose(np.zeros((10, 3)), gauge)
     assert not bad_shape.ok and "(N, 2)" in bad_shape.reason
 

@@ -82,7 +82,16 @@ PARAMETERS = [
     Param("max_face_angle", math.radians(70.0), "End segments steeper than this are side walls (rad).", 0.5, 1.5707),
     Param("max_corner_offset", 1e-3, "A corner must lie between its two faces to within this (m).", 1e-5, 0.01),
     Param("robust_line_fit", True, "Reject outlier points (spikes) in each face line fit."),
+    Param("spike_threshold", 1.5e-4, "Drop points this far (m) off the median depth of their five neighbours "
+          "before corner detection (glints); 0 keeps every point.", 0.0, 0.01),
+    Param("hidden_faces", True, "When corner detection finds one corner too few beside a gap in the profile, "
+          "solve the gauge without the face the gap hid (its neighbours' extrapolated crossing as the corner) and "
+          "publish that pose if it puts the hidden face inside the gap."),
     Param("max_reprojection_error", 1e-4, "Reject poses whose mean corner residual exceeds this (m).", 1e-7, 0.01),
+    Param("max_residual_ratio", 4.0, "Reject poses whose corner residuals are more than this many times (rms, in "
+          "their standard deviations) what the profile's own noise explains: the profile does not match the gauge. "
+          "A correct pose exceeds 4 with probability below 1e-7; a gauge machined worse than its file needs more "
+          "(docs/estimator.md); 1e9 turns the test off.", 1.0, 1e9),
     Param("diagnostics_period", 1.0, "Period of /diagnostics messages (s).", 0.02, 60.0),
     Param("queue_depth", 20, "Profiles the subscription keeps while this node is busy (sensor-data QoS, newest "
           "kept): 20 rides out a 20 ms stall at 1 kHz (5 lost 0.1-0.5 % of the profiles on a loaded 2-core "
@@ -98,8 +107,8 @@ PARAMETERS = [
 # the parameters that are EstimatorOptions (or CornerOptions) fields, under the same names
 ESTIMATOR_PARAMETERS = ("refine", "refine_weighting", "refine_model", "noise_std", "rdp_epsilon", "trim_fraction",
                         "min_segment_points", "min_corner_angle", "max_face_angle", "max_corner_offset",
-                        "robust_line_fit", "max_reprojection_error", "basin_search", "basin_search_min_sigma",
-                        "max_position_sigma")
+                        "robust_line_fit", "spike_threshold", "max_reprojection_error", "max_residual_ratio",
+                        "basin_search", "basin_search_min_sigma", "max_position_sigma", "hidden_faces")
 
 
 def options_from(values: dict) -> EstimatorOptions:

@@ -22,6 +22,7 @@ TOOLS = {
     "benchmark": ("benchmark", "the paper's Table III, side by side on this machine"),
     "node-benchmark": ("node_benchmark", "the pose_estimator node under load, over DDS between processes"),
     "study": ("study", "the paper's simulation study (III-B, III-C) with Cramer-Rao bounds"),
+    "robustness": ("robustness", "the estimator on spiky, gapped and noisy profiles: refusals, wrong poses, NEES"),
     "demo": ("estimation_demo", "a quick estimation demo on rendered profiles"),
     "soak": ("soak", "the closed loop for a long time, every profile and correction accounted for"),
     "faults": ("faults", "a factory's faults injected into the running closed loop"),

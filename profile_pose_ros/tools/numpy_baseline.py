@@ -123,13 +123,26 @@ def _merge_collinear(points: np.ndarray, lines: list[LineFit], options: CornerOp
     return lines
 
 
+def _without_spikes(pts: np.ndarray, threshold: float) -> np.ndarray:
+    """pts without those off the median depth of their five neighbours by more than threshold (glints)."""
+    if threshold <= 0 or len(pts) < 5:
+        return pts
+    z = pts[:, 1]
+    inner = z[2:-2]
+    off_line = np.abs(inner - 0.5 * (z[1:-3] + z[3:-1])) > 0.5 * threshold
+    off_median = np.abs(inner - np.median(np.lib.stride_tricks.sliding_window_view(z, 5), axis=1)) > threshold
+    spike = np.zeros(len(pts), dtype=bool)
+    spike[2:-2] = off_line & off_median
+    return pts[~spike]
+
+
 def detect_corners(points: np.ndarray, n_corners: int, options: CornerOptions = CornerOptions()) -> CornerResult:
     """Find exactly n_corners corners, in order of increasing x, or say why not."""
     points = np.asarray(points, dtype=float)
     if points.ndim != 2 or points.shape[1] != 2:
         return CornerResult(False, f"profile must be an (N, 2) array, got shape {points.shape}")
     valid = np.isfinite(points).all(axis=1)
-    pts = points[valid]
+    pts = _without_spikes(points[valid], options.spike_threshold)
     needed = (n_corners + 1) * options.min_segment_points
     if len(pts) < needed:
         return CornerResult(False, reason_too_few_points(len(pts), n_corners, needed))

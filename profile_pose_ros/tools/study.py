@@ -37,8 +37,8 @@ FAIL_UM = 1000.0  # the paper's '-' rule
 SPIKES = 0.01  # share of profile points replaced by spikes in the outlier study
 SPIKE_RANGE = (2e-4, 2e-3)  # m, spike magnitude (either sign)
 # plain fits, eq. 15, one start, every refined pose kept
-PAPER_PIPELINE = {"robust_line_fit": False, "refine_weighting": "uniform", "basin_search": False,
-                  "max_position_sigma": np.inf}
+PAPER_PIPELINE = {"robust_line_fit": False, "spike_threshold": 0.0, "refine_weighting": "uniform",
+                  "basin_search": False, "max_position_sigma": np.inf, "max_residual_ratio": np.inf}
 
 
 def error_row(gauge, estimate, rotation, t, n: int) -> list[float]:
@@ -84,7 +84,7 @@ def gauge_trial(task: tuple) -> dict:
         for noise in noises:
             points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, trace=trace_depth_fast)
             paper = estimate_pose(points, gauge, max_reprojection_error=1.0, basin_search=False,
-                                  max_position_sigma=np.inf)
+                                  max_position_sigma=np.inf, max_residual_ratio=np.inf)
             row = error_row(gauge, paper, rotation, t, n)
             rows[noise].append(row if noise > 0 else row[:6] + [np.nan])
             if noise != TABLE_NOISE:

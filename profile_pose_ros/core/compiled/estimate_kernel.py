@@ -12,12 +12,11 @@ import math
 import numpy as np
 
 from ..model.sym3 import largest_eigenvalue
-from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, NOT_FINITE, O_EPS,
-                    O_FLOOR, O_MARGIN, O_MAXFACE, O_MAXIT, O_MAXOFF, O_MAXREPROJ, O_MINANGLE, O_MINSEG,
-                    O_NOISE, O_PASSES, O_REFINE, O_ROBUST, O_SIGFLOOR, O_THR, O_TRIM, O_WEIGHTED, OK,
-                    OUTSIDE_FOOTPRINT, REPROJECTION, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS,
-                    WRONG_CORNER_COUNT, X_NOT_INCREASING, JIT, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE,
-                    POLISH_STEPS)
+from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, INCONSISTENT, JIT,
+                    NOT_FINITE, O_EPS, O_FLOOR, O_GAP, O_MARGIN, O_MAXFACE, O_MAXIT, O_MAXOFF, O_MAXRATIO, O_MAXREPROJ,
+                    O_MINANGLE, O_MINSEG, O_NOISE, O_PASSES, O_REFINE, O_ROBUST, O_SIGFLOOR, O_SPIKE, O_THR, O_TRIM,
+                    O_WEIGHTED, OK, OUTSIDE_FOOTPRINT, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS,
+                    REPROJECTION, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS, WRONG_CORNER_COUNT, X_NOT_INCREASING)
 from .kernel import kernel
 
 # ----------------------------------------------------------------------------- corner detection
@@ -242,6 +241,50 @@ def _fit_line(px, pz, first, last, opt, out, k, work, index_work):
 
 
 @kernel(**JIT)
+def _median5(a, b, c, d, e):
+    """The median of five values without sorting (it runs for every suspect point). The smallest of any four
+    has three above it, so it is not the median: drop it twice, and the median is the least of the last three."""
+    if a > b:
+        a, b = b, a
+    if c > d:
+        c, d = d, c
+    if a < c:
+        a = e
+        if a > b:
+            a, b = b, a
+    else:
+        c = e
+        if c > d:
+            c, d = d, c
+    return min(b, c) if a < c else min(a, d)
+
+
+@kernel(**JIT)
+def _drop_spikes(px, pz, n, threshold):
+    """Remove, in place, the points more than `threshold` off the median depth of their five neighbours in scan
+    order; returns how many remain. A glint's depth is unrelated to the face's: left in, RDP breaks the face at
+    it, and a break next to a corner leaves a short segment across the corner, fitted at an in-between slope
+    and kept as an extra face. A median of five keeps a face's points (a straight run is its own median, at
+    any slope) and a corner's within its slope change times the point pitch; two glints side by side still
+    go. Only points off the line through their two neighbours by half the threshold are tested."""
+    if n < 5:
+        return n
+    spike = np.zeros(n, dtype=np.bool_)
+    half = 0.5 * threshold
+    for i in range(2, n - 2):
+        if abs(pz[i] - 0.5 * (pz[i - 1] + pz[i + 1])) > half:
+            if abs(pz[i] - _median5(pz[i - 2], pz[i - 1], pz[i], pz[i + 1], pz[i + 2])) > threshold:
+                spike[i] = True
+    kept = 0
+    for i in range(n):
+        if not spike[i]:
+            px[kept] = px[i]
+            pz[kept] = pz[i]
+            kept += 1
+    return kept
+
+
+@kernel(**JIT)
 def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
     """Corner detection; returns (status, n_lines, fit_rms). info carries numbers for the reason; lines_out
     ((n_corners + 1, 10), rows as _fit_line's) gets the face fits when it succeeds."""
@@ -254,6 +297,8 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
             px[n] = points[i, 0]
             pz[n] = points[i, 1]
             n += 1
+    if opt[O_SPIKE] > 0:
+        n = _drop_spikes(px, pz, n, opt[O_SPIKE])
     px = px[:n]
     pz = pz[:n]
     min_seg = int(opt[O_MINSEG])
@@ -288,6 +333,8 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
         best = np.inf
         j = -1
         for k in range(count - 1):
+            if lines[k, 9] < opt[O_GAP] < lines[k + 1, 8]:
+                continue  # a gap hides a face between these two (hidden_face.py): never one face
             a = lines[k, 2]
             b = lines[k + 1, 2]
             gap = abs(math.atan((a - b) / (1.0 + a * b)))
@@ -316,6 +363,12 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
         info[0] = max(n_lines - 1, 0)
         info[1] = n_lines
         return WRONG_CORNER_COUNT, 0, np.nan
+    # a gap hides a face: the corner between the faces either side of it is virtual (hidden_face.py)
+    virtual = -1
+    if math.isfinite(opt[O_GAP]):
+        for i in range(n_corners):
+            if lines[start + i, 9] < opt[O_GAP] < lines[start + i + 1, 8]:
+                virtual = i
     jac[:, :] = 0.0
     for i in range(n_corners):
         a = lines[start + i]
@@ -341,6 +394,9 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
         jac[2 * i + 1, 2 * i + 3] = a[2] * d3
         low = a[9] - opt[O_MAXOFF]
         high = b[8] + opt[O_MAXOFF]
+        if i == virtual:  # where two faces' planes cross, which may be anywhere along their lines
+            low = -np.inf
+            high = np.inf
         if not (low <= x <= high) or not (math.isfinite(x) and math.isfinite(z)):
             info[0] = i
             info[1] = x
@@ -348,7 +404,8 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
             info[3] = b[8]
             return CORNER_NOT_BETWEEN, 0, np.nan
     for i in range(n_corners - 1):
-        if corners[i + 1, 0] - corners[i, 0] <= 0:
+        before = i - 1 if i == virtual else i  # the real corners keep their order around a virtual one
+        if before >= 0 and i + 1 != virtual and corners[i + 1, 0] - corners[before, 0] <= 0:
             return CORNERS_NOT_INCREASING, 0, np.nan
     used = 0.0
     ss = 0.0
@@ -706,7 +763,8 @@ def _closed_form(q, u, w, corners, info):
 def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, cov_out):
     """Levenberg-Marquardt + Gauss-Newton polish (unless polish is False) on SO(3) x R^3 (see solver.refine).
 
-    Returns (status, R, t, residuals, iterations); cov_out gets the (6, 6) covariance over [delta_F, t].
+    Returns (status, R, t, residuals, iterations, chi2); cov_out gets the (6, 6) covariance over [delta_F, t], chi2 is
+    the residuals' squared Mahalanobis length under the covariance the corners induce (inf if that is singular).
     """
     n2 = 2 * corners.shape[0]
     rot = rot.copy()  # the current pose, updated in place: the loop allocates nothing
@@ -718,7 +776,7 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
     weight = np.eye(n2)
     _residual_covariance(u, w, rot, corner_cov, sigma_r)
     if weighted and not _spd_inverse(sigma_r, weight):
-        return SINGULAR, rot, t, r, 0
+        return SINGULAR, rot, t, r, 0, np.inf
     cost = _quadratic(r, weight)
     damping = 1e-6
     iterations = 0
@@ -746,7 +804,7 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
             for k in range(6):
                 damped[k, k] += damping * hessian[k, k]
         if not _cholesky(damped, low):
-            return SINGULAR, rot, t, r, iterations
+            return SINGULAR, rot, t, r, iterations, np.inf
         for k in range(6):
             gradient[k] = -gradient[k]
         _cholesky_solve(low, gradient, step)
@@ -785,12 +843,17 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
                 it = max_iterations
     _jacobian(u, w, corners, rot, jac)
     _residual_covariance(u, w, rot, corner_cov, sigma_r)
-    if weighted and not _spd_inverse(sigma_r, weight):
-        return SINGULAR, rot, t, r, iterations
+    information = np.empty((n2, n2))
+    invertible = _spd_inverse(sigma_r, information)
+    if weighted:
+        if not invertible:
+            return SINGULAR, rot, t, r, iterations, np.inf
+        weight = information
+    chi2 = _quadratic(r, information) if invertible else np.inf
     _normal_equations(jac, weight, r, jw, hessian, gradient)
     bread = np.empty((6, 6))
     if not _spd_inverse(hessian, bread):
-        return SINGULAR, rot, t, r, iterations
+        return SINGULAR, rot, t, r, iterations, np.inf
     js = np.empty((6, n2))
     _matmul(jw, sigma_r, js, False)  # J^T W Sigma_r
     meat = np.empty((6, 6))
@@ -803,7 +866,7 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
             mean = 0.5 * (cov_out[a, b] + cov_out[b, a])
             cov_out[a, b] = mean
             cov_out[b, a] = mean
-    return OK, rot, t, r, iterations
+    return OK, rot, t, r, iterations, chi2
 
 
 @kernel(**JIT)
@@ -829,8 +892,8 @@ def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, 
                 cov_out):
     """solver.refine() compiled, for the basin search and the four-ridge starts. Returns (status, iterations);
     the pose, the stacked residuals and the (6, 6) covariance over [delta_F, t] go to the *_out arrays."""
-    status, rot2, t2, r2, iterations = _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations,
-                                               polish, cov_out)
+    status, rot2, t2, r2, iterations, _ = _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations,
+                                                  polish, cov_out)
     rot_out[:, :] = rot2
     t_out[:] = t2
     r_out[:] = r2
@@ -881,8 +944,8 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
             corner_cov[a, b] = acc
     max_it = int(opt[O_MAXIT]) if opt[O_REFINE] > 0 else 0
     cov = np.empty((6, 6))
-    status, rot2, t2, r2, iterations = _refine(q, u, w, corners, rot, t, corner_cov, opt[O_WEIGHTED] > 0, max_it,
-                                               True, cov)
+    status, rot2, t2, r2, iterations, chi2 = _refine(q, u, w, corners, rot, t, corner_cov, opt[O_WEIGHTED] > 0,
+                                                     max_it, True, cov)
     if status != OK:
         return status, iterations, fit_rms, np.nan, cf_err, np.nan
     if opt[O_REFINE] > 0:
@@ -894,6 +957,12 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
     for v in t:
         if not math.isfinite(v):
             return NOT_FINITE, iterations, fit_rms, err, cf_err, np.nan
+    dof = 2 * n - 6
+    # only a refined pose minimises the weighted residuals the test weighs; the closed form's are far larger
+    if opt[O_REFINE] > 0 and dof > 0 and not chi2 <= opt[O_MAXRATIO] * opt[O_MAXRATIO] * dof:
+        info[0] = chi2
+        info[1] = dof
+        return INCONSISTENT, iterations, fit_rms, err, cf_err, np.nan
     if not err <= opt[O_MAXREPROJ]:
         return REPROJECTION, iterations, fit_rms, err, cf_err, np.nan
     half_w = width / 2 + opt[O_MARGIN]

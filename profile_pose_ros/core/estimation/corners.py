@@ -1,7 +1,7 @@
 """Corner detection on a profile (paper II-D): its options, its result and the words of its refusals.
 
 The detection itself is compiled (compiled/estimate_kernel.py: _detect); estimation/stages.py calls it.
-RDP proposes breakpoints; each segment between breakpoints loses `trim_fraction` of its points at both
+Points far off the median of their neighbours (glints) are dropped first. RDP proposes breakpoints; each segment between breakpoints loses `trim_fraction` of its points at both
 ends (edge noise of triangulation) and gets a line fit of z on x (maximum likelihood for depth noise),
 optionally with outlier rejection; adjacent lines intersect in the corners. Spurious breakpoints (from
 spikes or noise) are removed by merging nearly collinear neighbours, and near-vertical segments at the
@@ -30,6 +30,12 @@ class CornerOptions:
     robust_line_fit: bool = True  # reject outliers in each line fit (spikes)
     outlier_threshold: float = 4.0  # in robust standard deviations
     min_outlier_floor: float = 1e-6  # m; never reject residuals below this (noise-free profiles)
+    # m; drop points this far off the median of their five neighbours before RDP (glints); 0 keeps every point.
+    # Half of rdp_epsilon: a smaller glint cannot make RDP break a face, a larger one is far beyond the noise.
+    spike_threshold: float = 1.5e-4
+    # m; an x inside a gap that hides a face (hidden_face.py): the corner between the faces either side of it is
+    # where their planes cross, exempt from the between and order checks. None: every corner is real.
+    virtual_corner_gap: float | None = None
 
 
 @dataclass

@@ -17,9 +17,10 @@ from ..compiled import codes
 from ..compiled.loader import kernels
 from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
+from .hidden_face import estimate_past_a_hidden_face
 from .pipeline import check_solution, estimate_multistart
-from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_outside,
-                     reason_poorly_determined, reason_reprojection, ros_covariance)
+from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_inconsistent,
+                     reason_outside, reason_poorly_determined, reason_reprojection, rejected, ros_covariance)
 from .solver import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
 from .stages import detect_corners, detection_reason, refine_dense, refine_pose
 
@@ -33,6 +34,14 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
     options = options or EstimatorOptions()
     if overrides:
         options = options.with_changes(**overrides)
+    estimate = _estimate_every_stage(points, gauge, options)
+    if not estimate.ok and estimate.corners.size == 0 and options.hidden_faces:
+        # corner detection refused it: perhaps a gap hides a whole face
+        return estimate_past_a_hidden_face(points, gauge, options, _estimate_every_stage) or estimate
+    return estimate
+
+
+def _estimate_every_stage(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
     estimate = _estimate_in_one_call(points, gauge, options)
     if estimate.ok and options.refine and options.refine_model == "dense":
         estimate = _refine_dense(points, gauge, options, estimate)
@@ -47,14 +56,8 @@ def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> Pos
     if sigma is None:
         sigma = position_sigma(estimate.covariance[:3, :3])  # NaN (kept) when the covariance is not finite
     if sigma > options.max_position_sigma:
-        return _rejected(estimate, reason_poorly_determined(sigma, options))
+        return rejected(estimate, reason_poorly_determined(sigma, options))
     return estimate
-
-
-def _rejected(estimate: PoseEstimate, reason: str, **changes) -> PoseEstimate:
-    """The estimate turned into a rejection: no pose, the corner results kept for diagnosis."""
-    return replace(estimate, ok=False, reason=reason, R=np.full((3, 3), np.nan), t=np.full(3, np.nan),
-                   covariance=np.full((6, 6), np.nan), position_sigma=None, **changes)
 
 
 def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate
@@ -64,13 +67,13 @@ def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, e
     try:
         dense = refine_dense(gauge, points, estimate.R, estimate.t, options.noise_std)
     except (np.linalg.LinAlgError, ValueError) as exc:
-        return _rejected(estimate, f"dense refinement: {exc}")
+        return rejected(estimate, f"dense refinement: {exc}")
     solution = PoseSolution(dense.rotation, dense.translation,
                             corner_residuals(gauge, estimate.corners, dense.rotation, dense.translation))
     timings = dict(estimate.timings, dense_refinement=time.perf_counter() - start)
     reason = check_solution(gauge, solution, estimate.corners, options)
     if reason:
-        return _rejected(estimate, f"dense refinement: {reason}", timings=timings)
+        return rejected(estimate, f"dense refinement: {reason}", timings=timings)
     return replace(estimate, R=dense.rotation, t=dense.translation, reprojection_error=solution.reprojection_error,
                    covariance=ros_covariance(dense.rotation, dense.covariance_local), timings=timings,
                    position_sigma=None)
@@ -89,6 +92,8 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
         return "refinement: Singular matrix"
     if status == codes.NOT_FINITE:
         return REASON_NOT_FINITE
+    if status == codes.INCONSISTENT:
+        return reason_inconsistent(info[0], int(info[1]), gauge, options)
     if status == codes.REPROJECTION:
         return reason_reprojection(error, gauge, options)
     if status == codes.OUTSIDE_FOOTPRINT:
@@ -123,7 +128,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     if status in (codes.CF_RANK, codes.CF_DEGENERATE):
         return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
     ok = status == codes.OK
-    if options.basin_search and options.refine and (status in (codes.REPROJECTION, codes.OUTSIDE_FOOTPRINT) or (
+    if options.basin_search and options.refine and (status in (codes.INCONSISTENT, codes.REPROJECTION, codes.OUTSIDE_FOOTPRINT) or (
             ok and sigma > options.basin_search_min_sigma)):
         # poorly determined, or perhaps in a wrong basin: the staged pipeline, whose basin search decides
         return estimate_multistart(points, gauge, options)

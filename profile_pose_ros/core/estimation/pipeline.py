@@ -12,18 +12,28 @@ import numpy as np
 
 from ..model.gauge import Gauge
 from ..model.rotation import so3_log
-from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_outside,
-                     reason_reprojection, ros_covariance)
+from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_inconsistent,
+                     reason_outside, reason_reprojection, ros_covariance)
 from .solver import (PoseSolution, Refinement, SolverError, closed_form, four_ridge_candidates, search_minima,
                      solution_cost)
 from .stages import detect_corners, refine_pose
 
 
-def check_solution(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, options: EstimatorOptions) -> str:
-    """Why a solution is no pose ("" if it is one): not finite, corners missing their ridges by more than the
-    bound, or corners mapped off the gauge's footprint (the checks the compiled one-call path makes too)."""
+def check_solution(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, options: EstimatorOptions,
+                   corner_covariance: np.ndarray | None = None) -> str:
+    """Why a solution is no pose ("" if it is one): not finite, corner residuals inconsistent with the
+    corners' covariance (when it is given), corners missing their ridges by more than the bound, or corners
+    mapped off the gauge's footprint (the checks the compiled one-call path makes too)."""
     if not (np.all(np.isfinite(solution.rotation)) and np.all(np.isfinite(solution.translation))):
         return REASON_NOT_FINITE
+    dof = 2 * len(corners) - 6
+    if corner_covariance is not None and dof > 0:
+        try:
+            chi2 = solution_cost(gauge, solution, corner_covariance, weighted=True)
+        except np.linalg.LinAlgError:
+            chi2 = np.inf
+        if not chi2 <= options.max_residual_ratio ** 2 * dof:
+            return reason_inconsistent(chi2, dof, gauge, options)
     error = solution.reprojection_error
     if not error <= options.max_reprojection_error:
         return reason_reprojection(error, gauge, options)
@@ -101,7 +111,7 @@ def estimate_multistart(points: np.ndarray, gauge: Gauge, options: EstimatorOpti
     if options.refine:
         solution, refined, iterations = result.solution, True, result.iterations
         timings["refinement"] = time.perf_counter() - start
-    reason = check_solution(gauge, solution, corners, options)
+    reason = check_solution(gauge, solution, corners, options, corner_cov)
     estimate = PoseEstimate(
         ok=not reason, reason=reason, corners=corners, reprojection_error=solution.reprojection_error,
         closed_form=initial, refined=refined, iterations=iterations, fit_rms=found.fit_rms, timings=timings,

@@ -28,6 +28,10 @@ class EstimatorOptions:
     refine_model: str = "corners"  # or "dense": then also fit every point's depth (core/estimation/dense.py)
     noise_std: float = 0.0  # m; 0 = estimate the depth noise from each face fit
     max_reprojection_error: float = 1e-4  # m; reject poses whose corners miss their ridges by more
+    # reject a pose whose corner residuals are more than this many times (rms, in their own standard deviations)
+    # what the profile's noise explains: a profile that does not match the gauge, at any noise level. A correct
+    # pose exceeds 4 with probability below 1e-7 (chi-square, 2n - 6 degrees of freedom); inf turns it off.
+    max_residual_ratio: float = 4.0
     footprint_margin: float = 2e-3  # m; mapped corners must lie this close to the gauge's footprint
     max_iterations: int = 30
     basin_search: bool = True  # look for a lower minimum around a poorly determined pose (solver.search_minima)
@@ -36,6 +40,8 @@ class EstimatorOptions:
     # linearised covariance understates the error (docs/estimator.md, "Covariance"), so nothing downstream
     # could weight it right. The shipped gauges are near 0.02-0.2 mm at 5 um noise.
     max_position_sigma: float = 5e-4
+    # when corner detection finds a corner too few beside a gap, solve the gauge without the face the gap hid
+    hidden_faces: bool = True
 
     def __post_init__(self) -> None:
         if self.refine_weighting not in WEIGHTINGS:
@@ -66,6 +72,9 @@ class EstimatorOptions:
         v[codes.O_MAXREPROJ] = self.max_reprojection_error
         v[codes.O_MARGIN] = self.footprint_margin
         v[codes.O_PASSES] = ROBUST_PASSES
+        v[codes.O_SPIKE] = c.spike_threshold
+        v[codes.O_MAXRATIO] = self.max_residual_ratio
+        v[codes.O_GAP] = np.nan if c.virtual_corner_gap is None else c.virtual_corner_gap
         v.setflags(write=False)
         return v
 
@@ -92,6 +101,13 @@ class PoseEstimate:
     timings: dict = field(default_factory=dict)  # seconds per stage
     search_starts: int = 0  # starting poses tried by the basin search (0: the pose was well determined)
     position_sigma: float | None = None  # position_sigma(covariance[:3, :3]) when the compiled path computed it
+    hidden_face: int | None = None  # the face a gap hid (hidden_face.py); corners then has one row fewer
+
+
+def rejected(estimate: PoseEstimate, reason: str, **changes) -> PoseEstimate:
+    """The estimate turned into a rejection: no pose, the corner results kept for diagnosis."""
+    return replace(estimate, ok=False, reason=reason, R=np.full((3, 3), np.nan), t=np.full(3, np.nan),
+                   covariance=np.full((6, 6), np.nan), position_sigma=None, **changes)
 
 
 def ros_covariance(rotation: np.ndarray, local: np.ndarray) -> np.ndarray:
@@ -108,6 +124,12 @@ REASON_NOT_FINITE = "pose is not finite"
 def reason_reprojection(error: float, gauge: Gauge, options: EstimatorOptions) -> str:
     return (f"reprojection error {error * 1e6:.1f} um exceeds {options.max_reprojection_error * 1e6:.1f} um "
             f"(profile does not match gauge '{gauge.name}')")
+
+
+def reason_inconsistent(chi2: float, dof: int, gauge: Gauge, options: EstimatorOptions) -> str:
+    return (f"corner residuals {math.sqrt(chi2 / dof):.1f}x what the profile's noise explains (chi-square "
+            f"{chi2:.1f} on {dof} degrees of freedom; limit {options.max_residual_ratio:g}x): the profile does not "
+            f"match gauge '{gauge.name}'")
 
 
 def reason_poorly_determined(sigma: float, options: EstimatorOptions) -> str:

@@ -134,6 +134,17 @@ class Gauge:
         """(n, 3) ridge directions [u, 1, w]."""
         return np.column_stack([self.u, np.ones_like(self.u), self.w])
 
+    def without_face(self, face: int) -> "Gauge":
+        """The gauge as a profile that misses `face` sees it: its neighbours meet at a virtual ridge, where
+        their planes cross. Same frame and footprint, so a pose of this gauge is a pose of the real one."""
+        cache = self.__dict__.setdefault("_without_face", {})
+        if face not in cache:
+            keep = np.arange(len(self.normals)) != face
+            cache[face] = Gauge(f"{self.name} without face {face}", self.width, self.length,
+                                np.array(self.normals[keep]), np.array(self.offsets[keep]), self.base_z,
+                                source=self.source)
+        return cache[face]
+
     def ridge_x(self, y: np.ndarray | float) -> np.ndarray:
         """x of every ridge at gauge y; shape (..., n)."""
         y = np.asarray(y, dtype=float)[..., None]

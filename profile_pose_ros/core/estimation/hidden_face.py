@@ -1,0 +1,122 @@
+"""A face no point falls on: a gap in the profile (an occlusion, a dropout, a dirty patch) wider than a
+narrow face hides the face and both its corners, and corner detection finds one corner too few.
+
+The two faces beside the gap are still seen. Their planes cross in a line of the gauge — a virtual ridge —
+and their fitted lines cross where that line pierces the laser plane, so the gauge without the hidden face
+(Gauge.without_face) describes the profile exactly and the usual estimator solves it. The corner in the gap
+is an extrapolation of the two fits, and its covariance (from the same line-fit Jacobian) says how far.
+
+Which face is hidden follows from where the gap is: the one between the two face fits either side of it.
+With no such gap, an end face may be out of view (a gap over the end of the lit span); both ends are tried
+and only an unambiguous answer is kept. Every answer is checked against the pose it gives: the full gauge at
+that pose must put the hidden face where the profile has no points, or the hypothesis is refused.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Callable
+
+import numpy as np
+
+from ..model.gauge import Gauge
+from ..model.render import true_corners
+from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
+from .stages import detect_corners
+
+# a run between two valid points wider than this many point pitches is a gap, not the profiler's spacing
+GAP_PITCHES = 3.0
+
+
+def _valid_x(points: np.ndarray) -> np.ndarray:
+    return points[np.isfinite(points).all(axis=1), 0]
+
+
+def profile_gaps(points: np.ndarray) -> list[tuple[float, float]]:
+    """(x before, x after) of every gap between valid points, widest first."""
+    x = _valid_x(points)
+    if len(x) < 3:
+        return []
+    steps = np.diff(x)
+    wide = np.flatnonzero(steps > GAP_PITCHES * float(np.median(steps)))
+    return [(float(x[k]), float(x[k + 1])) for k in wide[np.argsort(-steps[wide])]]
+
+
+def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
+                                estimate: Callable[[np.ndarray, Gauge, EstimatorOptions], PoseEstimate]
+                                ) -> PoseEstimate | None:
+    """The pose with one face hidden, or a refusal saying why not, or None when the profile does not look
+    like one face hidden (not exactly one corner missing): the caller's refusal stands."""
+    n = gauge.n_ridges
+    x = _valid_x(points)
+    if n < 5 or len(x) < 3:  # the gauge without a face must keep four ridges, the fewest the estimator solves
+        return None
+    # a face that showed fewer points than a segment needs would not have been found either
+    tolerance = options.corners.min_segment_points * float(np.median(np.diff(x)))
+    for before, after in profile_gaps(points)[:2]:
+        found = _with_face_hidden_in_gap(points, gauge, options, estimate, before, after, tolerance)
+        if found is not None:
+            return found
+    # an end face out of view (a gap over the end of the lit span): the lines are faces 1..n or 0..n-1
+    detection = detect_corners(points, n - 1, options.corners)
+    if not detection.ok:
+        return None
+    seen = (detection.lines[0].x_min, detection.lines[-1].x_max)
+    ends = [_with_end_face_hidden(points, gauge, options, estimate, face, seen, tolerance) for face in (0, n)]
+    accepted = [found for found in ends if found.ok]
+    if len(accepted) == 1:
+        return accepted[0]
+    if len(accepted) == 2:
+        return PoseEstimate(False, f"corner detection: found {n - 1} corners; either end face out of view "
+                                   f"explains the profile (ambiguous)", timings=accepted[0].timings)
+    return None
+
+
+def _with_face_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
+                             before: float, after: float, tolerance: float) -> PoseEstimate | None:
+    n = gauge.n_ridges
+    # The virtual corner may lie far outside the footprint (faces nearly parallel): that check is made here,
+    # for the real corners only. Its residual may be large and still within its (extrapolated) covariance: the
+    # consistency test, which weighs it so, stands for the absolute reprojection bound.
+    relaxed = replace(options, footprint_margin=math.inf, max_reprojection_error=math.inf).with_changes(
+        virtual_corner_gap=0.5 * (before + after))
+    detection = detect_corners(points, n - 1, relaxed.corners)
+    if not detection.ok:
+        return None
+    lines = detection.lines
+    virtual = next((i for i in range(n - 1) if lines[i].x_max <= before and lines[i + 1].x_min >= after), None)
+    if virtual is None:
+        return None
+    face = virtual + 1
+    where = f"face {face} hidden by the gap at x {before * 1e3:.1f}..{after * 1e3:.1f} mm"
+    found = estimate(points, gauge.without_face(face), relaxed)
+    if not found.ok:
+        return replace(found, reason=f"{found.reason} (with {where})")
+    hidden = true_corners(gauge, found.R, found.t)[[face - 1, face], 0]
+    reason = _outside_footprint(found, virtual, gauge, options)
+    if not reason and (hidden.min() < before - tolerance or hidden.max() > after + tolerance):
+        reason = (f"the pose puts face {face} at x {hidden.min() * 1e3:.1f}..{hidden.max() * 1e3:.1f} mm, where "
+                  f"the profile has points")
+    return rejected(found, f"{reason} (with {where})") if reason else replace(found, hidden_face=face)
+
+
+def _with_end_face_hidden(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
+                          face: int, seen: tuple[float, float], tolerance: float) -> PoseEstimate:
+    """The pose with end face `face` out of view: its corner must lie beyond the faces seen (x span `seen`)."""
+    found = estimate(points, gauge.without_face(face), options)
+    if not found.ok:
+        return found
+    ridge = true_corners(gauge, found.R, found.t)[0 if face == 0 else -1, 0]
+    if (ridge > seen[0] + tolerance) if face == 0 else (ridge < seen[1] - tolerance):
+        return rejected(found, f"the pose puts end face {face}'s corner at x {ridge * 1e3:.1f} mm, where the "
+                               f"profile has points")
+    return replace(found, hidden_face=face)
+
+
+def _outside_footprint(found: PoseEstimate, virtual: int, gauge: Gauge, options: EstimatorOptions) -> str:
+    half = np.array([gauge.width, gauge.length]) / 2 + options.footprint_margin
+    for i, (x, z) in enumerate(found.corners):
+        mapped = found.R @ np.array([x, 0.0, z]) + found.t
+        if i != virtual and np.any(np.abs(mapped[:2]) > half):
+            return reason_outside(i, mapped[0], mapped[1], gauge)
+    return ""

@@ -1,0 +1,174 @@
+"""profile_pose robustness: the estimator on profiles that are not clean — spikes, gaps, noise well above
+the profiler's — per gauge family: how often it refuses (and why), how often an accepted pose is wrong,
+whether its covariance is honest (NEES), and what each profile costs.
+
+A pose counts as wrong when its NEES against the truth is beyond the chi-square(6) 99.9 % quantile *and*
+its position is more than 0.1 mm off: a large error the covariance does not own. Gaps are 10 % of the lit
+span, centred on a corner (over) or half-way between two (between). Both cores are used; --quick is the
+test's reduced run.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from ..core import estimate_pose, pose_error, render_profile, sample_pose
+from ..core.compiled.render_kernel import trace_depth_fast
+from ..core.design.gauge_design import random_gauge
+from ..core.estimation.estimator import pose_nees
+from ..core.model.gauge import Gauge
+from ..core.model.render import true_corners
+from ..resources import config_path
+from .report import run_dir, summary, table, write_json
+
+NEES_999 = 22.458  # chi-square, 6 degrees of freedom, 99.9 %
+WRONG_POSITION = 1e-4  # m
+GAP_FRACTION = 0.10
+BASE_NOISE = 5e-6
+
+# condition -> (noise, spike fraction, gap placement)
+CONDITIONS = {
+    "clean": (BASE_NOISE, 0.0, None),
+    "spikes 0.5 %": (BASE_NOISE, 0.005, None),
+    "spikes 1 %": (BASE_NOISE, 0.01, None),
+    "spikes 2 %": (BASE_NOISE, 0.02, None),
+    "spikes 5 %": (BASE_NOISE, 0.05, None),
+    "gap over a corner": (BASE_NOISE, 0.0, "over"),
+    "gap between corners": (BASE_NOISE, 0.0, "between"),
+    "noise 15 um": (15e-6, 0.0, None),
+    "noise 45 um": (45e-6, 0.0, None),
+}
+
+
+def family_gauges(family: str, count: int, seed: int) -> list[Gauge]:
+    if family.startswith("random n="):
+        rng = np.random.default_rng(seed)
+        return [random_gauge(int(family.split("=")[1]), rng) for _ in range(count)]
+    return [Gauge.from_yaml(config_path(family))]
+
+
+def with_gap(points: np.ndarray, corners_x: np.ndarray, placement: str, rng: np.random.Generator) -> np.ndarray:
+    """points with 10 % of the lit span removed, centred on a corner or between two."""
+    lit = points[np.isfinite(points[:, 1]), 0]
+    width = GAP_FRACTION * (lit.max() - lit.min())
+    inside = np.sort(corners_x[(corners_x > lit.min()) & (corners_x < lit.max())])
+    if placement == "over" or len(inside) < 2:
+        centre = rng.choice(inside) if len(inside) else 0.5 * (lit.min() + lit.max())
+    else:
+        k = rng.integers(len(inside) - 1)
+        centre = 0.5 * (inside[k] + inside[k + 1])
+    gapped = points.copy()
+    gapped[np.abs(points[:, 0] - centre) < width / 2, 1] = np.nan
+    return gapped
+
+
+def family_trial(task: tuple) -> list[dict]:
+    """Every condition on the same poses of one gauge: one record per profile."""
+    family, gauge_index, seed, poses, options = task
+    gauge = family_gauges(family, gauge_index + 1, seed)[gauge_index]
+    rng = np.random.default_rng(seed * 7919 + gauge_index)
+    records = []
+    for _ in range(poses):
+        rotation, t = sample_pose(gauge, rng, trace=trace_depth_fast)
+        corners_x = true_corners(gauge, rotation, t)[:, 0]
+        for condition, (noise, spikes, gap) in CONDITIONS.items():
+            points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, spike_fraction=spikes,
+                                    trace=trace_depth_fast)
+            if gap:
+                points = with_gap(points, corners_x, gap, rng)
+            start = time.perf_counter()
+            estimate = estimate_pose(points, gauge, **options)
+            elapsed = time.perf_counter() - start
+            record = {"condition": condition, "ok": estimate.ok, "reason": estimate.reason, "time": elapsed}
+            if estimate.ok:
+                position, rotation_error = pose_error(estimate.R, estimate.t, rotation, t)
+                record.update(position=position, rotation=rotation_error, nees=pose_nees(estimate, rotation, t),
+                              sigma=float(np.sqrt(np.linalg.eigvalsh(estimate.covariance[:3, :3]).max())))
+            records.append(record)
+    return records
+
+
+def reason_kind(reason: str) -> str:
+    """A refusal's words with its numbers taken out, so that alike refusals count together."""
+    return re.sub(r"-?\d+(\.\d+)?", "#", reason)
+
+
+def cell(records: list[dict]) -> dict:
+    accepted = [r for r in records if r["ok"]]
+    wrong = [r for r in accepted if r["nees"] > NEES_999 and r["position"] > WRONG_POSITION]
+    reasons = Counter(reason_kind(r["reason"]) for r in records if not r["ok"])
+    nees = np.array([r["nees"] for r in accepted])
+    return {"profiles": len(records), "refused_pct": 100.0 * (1 - len(accepted) / max(len(records), 1)),
+            "wrong_pct": 100.0 * len(wrong) / max(len(records), 1),
+            "worst_wrong_position_mm": max((r["position"] * 1e3 for r in wrong), default=0.0),
+            "nees_mean": float(nees.mean()) if nees.size else float("nan"),
+            "nees_beyond_999_pct": 100.0 * float((nees > NEES_999).mean()) if nees.size else float("nan"),
+            "time_ms": summary(1e3 * np.array([r["time"] for r in records])),
+            "top_refusal": reasons.most_common(1)[0][0] if reasons else "",
+            "refusals": dict(reasons.most_common(5))}
+
+
+def _option(item: str) -> tuple[str, object]:
+    """OPTION=VALUE as the estimator takes it (YAML's reading of VALUE: numbers, true/false, inf)."""
+    import yaml
+
+    name, _, text = item.partition("=")
+    value = yaml.safe_load(text)
+    return name, float(text) if text.lower() in ("inf", "-inf") else value
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="2 gauges per random family, 6 poses each")
+    parser.add_argument("--families", nargs="+",
+                        default=["gauge_paper_n5.yaml", "gauge_designed_n6.yaml", "random n=4", "random n=5",
+                                 "random n=7", "random n=10"])
+    parser.add_argument("--gauges", type=int, default=10, help="random gauges per random family")
+    parser.add_argument("--poses", type=int, default=20, help="poses per gauge (shipped gauges: x gauges)")
+    parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
+    parser.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
+                        help="estimator options (pose_estimator's parameter names), e.g. spike_threshold=0 "
+                             "max_residual_ratio=inf for the estimator without its spike filter and consistency test")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=2026)
+    parser.add_argument("--out", default="runs")
+    args = parser.parse_args(argv)
+    gauges, poses = (2, 6) if args.quick else (args.gauges, args.poses)
+    options = {"refine_model": args.refine_model, **dict(_option(item) for item in args.set)}
+    tasks = []
+    for f, family in enumerate(args.families):
+        if family.startswith("random n="):
+            tasks += [(family, k, args.seed + 101 * f, poses, options) for k in range(gauges)]
+        else:  # one shipped gauge, as many poses as a random family has
+            tasks += [(family, 0, args.seed + 101 * f + k, poses, options) for k in range(gauges)]
+    from tqdm import tqdm
+
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        results = list(tqdm(pool.map(family_trial, tasks), total=len(tasks), desc="gauges", file=sys.stderr))
+    by_cell: dict[tuple[str, str], list[dict]] = {}
+    for task, records in zip(tasks, results):
+        for record in records:
+            by_cell.setdefault((task[0], record["condition"]), []).append(record)
+    cells = {f"{family} | {condition}": cell(records) for (family, condition), records in by_cell.items()}
+    rows = [[name.split(" | ")[0].replace(".yaml", ""), name.split(" | ")[1], str(c["profiles"]),
+             f"{c['refused_pct']:.1f}", f"{c['wrong_pct']:.1f}", f"{c['nees_mean']:.1f}",
+             f"{c['nees_beyond_999_pct']:.1f}", f"{c['time_ms']['median']:.3f}", f"{c['time_ms']['p99']:.2f}",
+             c["top_refusal"][:70]] for name, c in cells.items()]
+    print(table(["gauge", "condition", "profiles", "refused %", "wrong %", "NEES", "NEES>99.9% %", "ms p50",
+                 "ms p99", "most common refusal"], rows,
+                title=f"The estimator on unclean profiles ({args.refine_model} refinement; wrong = NEES beyond "
+                      f"{NEES_999} and > {WRONG_POSITION * 1e3:g} mm off)"))
+    out = run_dir(args.out, "robustness")
+    write_json(out / "robustness.json", {"options": options, "cells": cells})
+    print(f"\nresults: {out / 'robustness.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
