@@ -34,8 +34,8 @@ PARAMETERS = [
     Param("topics", [], "Topics to play (as recorded, absolute). Empty: all.", read_only=True),
     Param("exclude_topics", [], "Topics never played.", read_only=True),
     Param("queue_depth", 100, "Publisher history depth.", 1, 100000, read_only=True),
-    Param("wait_for_subscribers", False, "Start only once every played topic has a subscriber (or after "
-          "wait_timeout).", read_only=True),
+    Param("wait_for_subscribers", False, "Start only once every played topic (and /clock, when published) has a "
+          "subscriber (or after wait_timeout).", read_only=True),
     Param("wait_timeout", 10.0, "Longest wait for subscribers (s).", 0.0, 3600.0, read_only=True),
     Param("discovery_grace", 0.5, "After the subscribers appear, wait this long before the first message when a "
           "topic is best-effort (s): such a writer sees its reader before the reader has matched it back, and "
@@ -84,8 +84,10 @@ class BagPlayerNode(Node):
 
     def _wait_for_subscribers(self) -> None:
         deadline = time.monotonic() + self.values["wait_timeout"]
+        # /clock too: a use_sim_time node whose clock subscription matches late misses the start of the bag's time
+        waited = [*self.publishers_by_topic.values(), *([self.clock_pub] if self.clock_pub is not None else [])]
         while time.monotonic() < deadline and not self._stop.is_set():
-            if all(p.get_subscription_count() for p in self.publishers_by_topic.values()):
+            if all(p.get_subscription_count() for p in waited):
                 if any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
                        for p in self.publishers_by_topic.values()):
                     self._stop.wait(self.values["discovery_grace"])
