@@ -77,3 +77,15 @@ def test_quick_study_runs_end_to_end(tmp_path):
     assert data["outliers"]["1 % spikes, this package (robust fits)"]["poses"] == 4 * 5
     assert data["dense"]["poses"] == 20 and data["dense"]["failed"] == 0
     assert list(tmp_path.glob("*/fig3_noise.png"))
+
+
+def test_quick_robustness_runs_every_condition_and_the_shipped_gauges_publish_no_wrong_pose(tmp_path):
+    stdout, data = run_quick("robustness", "robustness.json", tmp_path)
+    cells = data["cells"]
+    conditions = {name.split(" | ")[1] for name in cells}
+    assert {"clean", "spikes 5 %", "gap over a corner", "gap between corners", "noise 45 um"} <= conditions
+    shipped = {k: c for k, c in cells.items() if k.startswith("gauge_")}
+    assert shipped and all(c["wrong_pct"] == 0 for c in shipped.values())
+    assert all(shipped[f"{gauge} | spikes {rate} %"]["refused_pct"] == 0
+               for gauge in ("gauge_paper_n5.yaml", "gauge_designed_n6.yaml") for rate in ("0.5", "1", "2", "5"))
+    assert "profiles," in stdout and "accepted" in stdout

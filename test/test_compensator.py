@@ -258,3 +258,22 @@ def test_a_pose_or_reference_in_another_frame_or_not_unit_length_is_refused(ros)
     assert node.reference is None and node.refused["reference"] == 4
     node._on_reference(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.452]), stamp, "gauge"))  # 2 mm: taken
     assert node.reference is not None
+
+
+def test_a_pose_less_precise_than_the_compensator_needs_steers_nothing(ros) -> None:
+    """The precision decision is the consumer's: a pose whose covariance says its position is known to worse
+    than max_position_sigma is refused and counted; a precise one right after it is taken."""
+    from rclpy.serialization import serialize_message
+
+    node = compensator(ros, max_position_sigma=2e-4)
+    node.reference = np.zeros(6)
+    stamp = Time(nanoseconds=time.time_ns()).to_msg()
+    position = np.array([0.0, 0.0, 0.45])
+    vague = pose_with_covariance(pose_stamped(LOOKING_DOWN, position, stamp, "gauge"),
+                                 np.diag([1e-10, 1e-10, 9e-8] + [1e-8] * 3))  # z std 0.3 mm
+    node._on_pose(serialize_message(vague))
+    assert (node.poses, node.corrections, node.refused["imprecise"]) == (0, 0, 1)
+    precise = pose_with_covariance(pose_stamped(LOOKING_DOWN, position, stamp, "gauge"),
+                                   np.diag([1e-10] * 3 + [1e-8] * 3))
+    node._on_pose(serialize_message(precise))
+    assert (node.poses, node.corrections) == (1, 1)

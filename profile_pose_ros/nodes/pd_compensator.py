@@ -31,6 +31,7 @@ from ..core.timing.latency_window import LatencyWindow
 from ..core.control.modal_control import ModalController, ModalDesign
 from ..core.wire.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
 from ..core.model.rotation import rotation_from_quaternion_xyzw
+from ..core.estimation.result import position_sigma
 from .diagnostics import OK, WARN, RefusalCounter, diagnostic_array
 from .direct_input import DirectInput, ServedDirectly, spin
 from .local_topics import LOOP_INPUT_QOS, LocalTopics, LoopOutput
@@ -92,6 +93,9 @@ PARAMETERS = [
           "a first-order filter of this time constant (s), starting from where the arm is.", 0.01, 10.0,
           read_only=True),
     Param("use_covariance", True, "Weight each pose by its published covariance (else by measurement_std)."),
+    Param("max_position_sigma", 5e-4, "Refuse a pose whose covariance puts its position's largest standard "
+          "deviation beyond this (m; with use_covariance): how precise a pose must be to steer the arm is this "
+          "node's decision, the estimator publishes every pose it can describe honestly.", 1e-6, 1.0),
     Param("measurement_std", 5e-5, "Pose noise assumed when use_covariance is false (m; rad the same number).",
           1e-7, 1e-2),
     Param("max_pose_age", 0.05, "A pose older than this (by its stamp) is stale: zero correction (s).", 0.001, 1.0),
@@ -162,7 +166,8 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.pose_fresh_until = -math.inf  # time.monotonic() at which the newest pose turns stale
         self.last_measured: np.ndarray | None = None  # the newest pose, base coordinates (for the reference check)
         self.poses = self.corrections = self.stale_zeros = 0
-        self.refused = {"stale": 0, "future": 0, "frame": 0, "orientation": 0, "covariance": 0, "range": 0, "reference": 0}
+        self.refused = {"stale": 0, "future": 0, "frame": 0, "orientation": 0, "covariance": 0, "imprecise": 0,
+                        "range": 0, "reference": 0}
         self.last_error = np.zeros(6)
         self._lock = threading.Lock()  # composed, poses arrive on another thread than the watchdog's
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -285,6 +290,11 @@ class PdCompensatorNode(RefusalCounter, Node):
         rotation = rotation_from_quaternion_xyzw(np.array(pose[3:]))
         z = self._pose_vector(rotation, np.array(pose[:3]))
         if self.values["use_covariance"]:
+            sigma = position_sigma(covariance[:3, :3])
+            if sigma > v["max_position_sigma"]:
+                self._refuse("imprecise", f"pose ignored: its position std {sigma * 1e3:.3f} mm exceeds "
+                                          f"max_position_sigma {v['max_position_sigma'] * 1e3:g} mm")
+                return
             variance = covariance_in_base(covariance, self.mounting)
         else:
             variance = np.full(6, self.values["measurement_std"] ** 2)
