@@ -164,7 +164,8 @@ def main(argv=None) -> int:
     cells = {f"{family} | {condition}": cell(records) for (family, condition), records in by_cell.items()}
     rows = [[name.split(" | ")[0].replace(".yaml", ""), name.split(" | ")[1], str(c["profiles"]),
              f"{c['refused_pct']:.1f}", f"{c['wrong_pct']:.2f}", f"{c['overconfident_pct']:.1f}",
-             f"{c['nees_mean']:.1f}", f"{c['nees_beyond_99_pct']:.1f}", f"{c['time_ms']['median']:.3f}", f"{c['time_ms']['p99']:.2f}",
+             f"{c['nees_mean']:.1f}", f"{c['nees_beyond_99_pct']:.1f}", f"{c['time_ms']['median']:.3f}",
+             f"{c['time_ms']['p99']:.2f}",
              c["top_refusal"][:70]] for name, c in cells.items()]
     print(table(["gauge", "condition", "profiles", "refused %", "wrong %", "overconf. %", "NEES", "NEES>16.8 %",
                  "ms p50", "ms p99", "most common refusal"], rows,

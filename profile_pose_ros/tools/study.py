@@ -38,7 +38,8 @@ SPIKES = 0.01  # share of profile points replaced by spikes in the outlier study
 SPIKE_RANGE = (2e-4, 2e-3)  # m, spike magnitude (either sign)
 # plain fits, eq. 15, one start, every refined pose kept
 PAPER_PIPELINE = {"robust_line_fit": False, "spike_threshold": 0.0, "refine_weighting": "uniform",
-                  "basin_search": False, "max_position_sigma": np.inf, "max_residual_ratio": np.inf}
+                  "basin_search": False, "max_position_sigma": np.inf, "max_residual_ratio": np.inf,
+                  "hidden_faces": False}
 
 
 def error_row(gauge, estimate, rotation, t, n: int) -> list[float]:
@@ -95,7 +96,8 @@ def gauge_trial(task: tuple) -> dict:
             if n == 5:
                 spiky = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, spike_fraction=SPIKES,
                                        spike_range=SPIKE_RANGE, trace=trace_depth_fast)
-                spiky_ours = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0), rotation, t, n)[4]
+                spiky_ours = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0), rotation, t,
+                                       n)[4]
                 spiky_paper = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0,
                                                              **PAPER_PIPELINE), rotation, t, n)[4]
             found = detect_corners(points, n) if ours.ok or paper.ok else None  # once for both checks

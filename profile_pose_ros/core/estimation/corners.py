@@ -1,11 +1,12 @@
 """Corner detection on a profile (paper II-D): its options, its result and the words of its refusals.
 
 The detection itself is compiled (compiled/estimate_kernel.py: _detect); estimation/stages.py calls it.
-Points far off the median of their neighbours (glints) are dropped first. RDP proposes breakpoints; each segment between breakpoints loses `trim_fraction` of its points at both
-ends (edge noise of triangulation) and gets a line fit of z on x (maximum likelihood for depth noise),
-optionally with outlier rejection; adjacent lines intersect in the corners. Spurious breakpoints (from
-spikes or noise) are removed by merging nearly collinear neighbours, and near-vertical segments at the
-ends (the gauge's side walls) are dropped. If the result is not exactly the gauge's n corners in order,
+Points far off the median of their neighbours (glints) are dropped first. RDP proposes breakpoints; each
+segment between breakpoints loses `trim_fraction` of its points at both ends (edge noise of triangulation)
+and gets a line fit of z on x (maximum likelihood for depth noise), optionally with outlier rejection;
+adjacent lines intersect in the corners. Spurious breakpoints (from spikes or noise) are removed by
+merging nearly collinear neighbours, and near-vertical segments at the ends (the gauge's side walls) are
+dropped. A face a gap hides entirely is handled by hidden_face.py. If the result is not exactly the gauge's n corners in order,
 detection fails with a reason: a guessed correspondence would yield a confidently wrong pose.
 """
 from __future__ import annotations

@@ -128,8 +128,8 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     if status in (codes.CF_RANK, codes.CF_DEGENERATE):
         return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
     ok = status == codes.OK
-    if options.basin_search and options.refine and (status in (codes.INCONSISTENT, codes.REPROJECTION, codes.OUTSIDE_FOOTPRINT) or (
-            ok and sigma > options.basin_search_min_sigma)):
+    doubtful = status in (codes.INCONSISTENT, codes.REPROJECTION, codes.OUTSIDE_FOOTPRINT)
+    if options.basin_search and options.refine and (doubtful or (ok and sigma > options.basin_search_min_sigma)):
         # poorly determined, or perhaps in a wrong basin: the staged pipeline, whose basin search decides
         return estimate_multistart(points, gauge, options)
     return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
