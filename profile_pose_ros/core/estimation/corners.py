@@ -6,8 +6,8 @@ segment between breakpoints loses `trim_fraction` of its points at both ends (ed
 and gets a line fit of z on x (maximum likelihood for depth noise), optionally with outlier rejection;
 adjacent lines intersect in the corners. Spurious breakpoints (from spikes or noise) are removed by
 merging nearly collinear neighbours, and near-vertical segments at the ends (the gauge's side walls) are
-dropped. A face a gap hides entirely is handled by hidden_face.py. If the result is not exactly the gauge's n corners in order,
-detection fails with a reason: a guessed correspondence would yield a confidently wrong pose.
+dropped. If the result is not exactly the gauge's n corners in order, detection fails with a reason: a
+guessed correspondence would yield a confidently wrong pose (a face a gap hides entirely: hidden_face.py).
 """
 from __future__ import annotations
 
