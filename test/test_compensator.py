@@ -277,3 +277,16 @@ def test_a_pose_less_precise_than_the_compensator_needs_steers_nothing(ros) -> N
                                    np.diag([1e-10] * 3 + [1e-8] * 3))
     node._on_pose(serialize_message(precise))
     assert (node.poses, node.corrections) == (1, 1)
+
+
+def test_a_covariance_near_the_float_limit_is_refused_as_imprecise(ros) -> None:
+    """Found by the fuzzer: finite entries whose squares overflow must not raise inside the callback."""
+    from rclpy.serialization import serialize_message
+
+    node = compensator(ros)
+    node.reference = np.zeros(6)
+    stamp = Time(nanoseconds=time.time_ns()).to_msg()
+    vast = pose_with_covariance(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge"),
+                                np.diag([1e300, 1e-10, 1e-10] + [1e-8] * 3))
+    node._on_pose(serialize_message(vast))
+    assert (node.poses, node.refused["imprecise"]) == (0, 1)

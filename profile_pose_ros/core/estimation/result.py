@@ -148,4 +148,7 @@ def position_sigma(position_covariance: np.ndarray) -> float:
     (a, b, c), (_, d, e), (_, _, f) = position_covariance.tolist()
     if not all(map(math.isfinite, (a, b, c, d, e, f))):
         return float("nan")
-    return math.sqrt(max(largest_eigenvalue(a, b, c, d, e, f), 0.0))
+    try:
+        return math.sqrt(max(largest_eigenvalue(a, b, c, d, e, f), 0.0))
+    except OverflowError:  # entries near the float limit (a received covariance): no precision at all
+        return math.inf
