@@ -164,7 +164,9 @@ def replayed_live_with_clock(ros, prefix: Path, env: dict, bag: Path) -> None:
     assert ros.spin_until(lambda: time.time_ns() - end > 2 * MAX_PROFILE_AGE_NS, timeout=3 * MAX_PROFILE_AGE_NS * 1e-9)
     player = subprocess.Popen([str(lib / "bag_player"), "--ros-args", "-p", f"bag:={bag}", "-p", "clock:=100.0",
                                "-p", "topics:=['/profile']", "-p", "wait_for_subscribers:=true",
-                               "-p", "exit_when_done:=false"],
+                               # the listener here is the second /clock subscriber: give the player time to
+                               # discover it, and the bag's half second of time enough wall time to reach it
+                               "-p", "discovery_grace:=2.0", "-p", "rate:=0.25", "-p", "exit_when_done:=false"],
                               env=run_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         # the player's profiles ride a sensor-data queue: a loaded runner may lose a few
