@@ -8,7 +8,7 @@ VENV="$(cd "${1:-${VIRTUAL_ENV:?give the venv, or activate it}}" && pwd)"
 
 "$VENV/bin/python" -c 'import tf2_msgs.msg' 2>/dev/null && exit 0
 command -v cmake >/dev/null || { echo "error: cmake is needed once, to build tf2_msgs into $VENV" >&2; exit 1; }
-echo "[setup] building the tf2_msgs interface into $VENV (no wheel on PyPI; about 15 s)" >&2
+echo "[setup] building the tf2_msgs interface into $VENV (no wheel on PyPI; about 10 s)" >&2
 BUILD="$(mktemp -d)"
 if ! (cd "$BUILD" && export PATH="$VENV/bin:$PATH" &&
       cmake "$ROOT/interfaces/tf2_msgs" -DCMAKE_PREFIX_PATH="$VENV" -DCMAKE_INSTALL_PREFIX="$VENV" \
