@@ -218,6 +218,9 @@ def test_the_bringup_from_the_install_owns_its_nodes(ros, workspace, tmp_path, h
             # the recording re-estimated offline by the installed replay, with the installed cell.yaml: the
             # estimator's poses bit for bit
             bag = next(tmp_path.glob("*-bringup/bag"))
+            from profile_pose_ros.bags.writer import _mcap_compression
+            assert {_mcap_compression(path) for path in bag.glob("*.mcap")} == {"zstd"}  # cell.yaml's too
+            assert "ros_distro: jazzy" in (bag / "metadata.yaml").read_text()  # as rosbag2 writes it
             script = ("import json, sys; from profile_pose_ros.tools.replay import estimator_values, replay; "
                       "print(json.dumps(replay(sys.argv[1], estimator_values(sys.argv[2], {}))))")
             cell_yaml = prefix / "share" / "profile_pose_ros" / "config" / "cell.yaml"
