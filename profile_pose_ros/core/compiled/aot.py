@@ -26,8 +26,9 @@ from importlib.metadata import version
 from pathlib import Path
 
 MODULE = "profile_pose_estimator_aot"
-SOURCES = ("compiled/estimate_kernel.py", "compiled/codes.py", "compiled/dense_kernel.py", "compiled/decode_kernel.py",
-           "compiled/kernel.py", "model/sym3.py")
+SOURCES = ("compiled/estimate_kernel.py", "compiled/search_kernel.py", "compiled/pipeline_kernel.py",
+           "compiled/codes.py", "compiled/dense_kernel.py", "compiled/decode_kernel.py", "compiled/kernel.py",
+           "model/sym3.py")
 
 
 def cache_root() -> Path:
@@ -140,8 +141,9 @@ def load(timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile estimate_kernel.estimate, .refine_pose, .detect, decode_kernel.decode_xz and dense_kernel.refine_dense
-    with numba.pycc (in its own process: it loads LLVM)."""
+    """Compile pipeline_kernel.estimate, estimate_kernel.refine_pose, .detect, search_kernel.search_minima,
+    .four_ridge_starts, decode_kernel.decode_xz and dense_kernel.refine_dense with numba.pycc (in its own process:
+    it loads LLVM)."""
     import warnings
 
     from numba import types
@@ -150,12 +152,12 @@ def build_into(directory: Path) -> None:
         warnings.simplefilter("ignore")
         from numba.pycc import CC
 
-    from . import decode_kernel, dense_kernel, estimate_kernel
+    from . import decode_kernel, dense_kernel, estimate_kernel, pipeline_kernel, search_kernel
 
     f8 = types.float64
     array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
     frozen2, frozen1 = types.Array(f8, 2, "C", readonly=True), types.Array(f8, 1, "C", readonly=True)
-    signature = types.Tuple((types.int64, types.int64, f8, f8, f8, f8))(
+    signature = types.Tuple((types.int64, types.int64, f8, f8, f8, f8, types.int64))(
         array2, frozen2, frozen1, frozen1, f8, f8, frozen1, array2, array2, array1, array2, array2, array1, array2,
         array2, array1)
     compiler = CC(MODULE)
@@ -164,7 +166,7 @@ def build_into(directory: Path) -> None:
 
     @compiler.export("estimate", signature)
     def estimate(points, q, u, w, width, length, opt, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info):
-        return estimate_kernel.estimate(points, q, u, w, width, length, opt, corners, rot, t, cov, cf_rot, cf_t,
+        return pipeline_kernel.estimate(points, q, u, w, width, length, opt, corners, rot, t, cov, cf_rot, cf_t,
                                         cf_res, res, info)
 
     boolean, int64 = types.boolean, types.int64
@@ -177,6 +179,22 @@ def build_into(directory: Path) -> None:
                     cov_out):
         return estimate_kernel.refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish,
                                            rot_out, t_out, r_out, cov_out)
+
+    search_signature = types.Tuple((boolean, int64, int64))(
+        frozen2, frozen1, frozen1, array2, array2, boolean, int64, array2, array1, array2, array2, array1, array1,
+        array2)
+
+    @compiler.export("search_minima", search_signature)
+    def search_minima(q, u, w, corners, corner_cov, weighted, max_iterations, rot, t, cov, rot_out, t_out, r_out,
+                      cov_out):
+        return search_kernel.search_minima(q, u, w, corners, corner_cov, weighted, max_iterations, rot, t, cov,
+                                           rot_out, t_out, r_out, cov_out)
+
+    array3 = types.Array(f8, 3, "C")
+
+    @compiler.export("four_ridge_starts", int64(frozen2, frozen1, frozen1, array2, array3, array2))
+    def four_ridge_starts(q, u, w, corners, rots, ts):
+        return search_kernel.four_ridge_starts(q, u, w, corners, rots, ts)
 
     detect_signature = types.Tuple((int64, int64, f8))(array2, int64, frozen1, array2, array2, array1, array1, array2)
 

@@ -25,8 +25,9 @@ DECODED, OFF_PLANE, INFINITE, ALL_INVALID = 0, 1, 2, 3
 
 # option vector layout
 O_EPS, O_TRIM, O_MINSEG, O_MINANGLE, O_MAXFACE, O_MAXOFF, O_ROBUST, O_THR, O_FLOOR, O_NOISE, O_SIGFLOOR, \
-    O_WEIGHTED, O_REFINE, O_MAXIT, O_MAXREPROJ, O_MARGIN, O_PASSES, O_SPIKE, O_MAXRATIO, O_GAP = range(20)
-N_OPTIONS = 20
+    O_WEIGHTED, O_REFINE, O_MAXIT, O_MAXREPROJ, O_MARGIN, O_PASSES, O_SPIKE, O_MAXRATIO, O_GAP, O_SEARCH, \
+    O_SEARCHSIG = range(22)
+N_OPTIONS = 22
 
 JIT = dict(cache=True, error_model="numpy", nogil=True)  # numba.njit options of every compiled function
 

@@ -11,12 +11,10 @@ import math
 
 import numpy as np
 
-from ..model.sym3 import largest_eigenvalue
-from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, INCONSISTENT, JIT,
-                    NOT_FINITE, O_EPS, O_FLOOR, O_GAP, O_MARGIN, O_MAXFACE, O_MAXIT, O_MAXOFF, O_MAXRATIO, O_MAXREPROJ,
-                    O_MINANGLE, O_MINSEG, O_NOISE, O_PASSES, O_REFINE, O_ROBUST, O_SIGFLOOR, O_SPIKE, O_THR, O_TRIM,
-                    O_WEIGHTED, OK, OUTSIDE_FOOTPRINT, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS,
-                    REPROJECTION, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS, WRONG_CORNER_COUNT, X_NOT_INCREASING)
+from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, JIT, O_EPS, O_FLOOR, O_GAP,
+                    O_MAXFACE, O_MAXOFF, O_MINANGLE, O_MINSEG, O_NOISE, O_PASSES, O_ROBUST, O_SIGFLOOR, O_SPIKE, O_THR,
+                    O_TRIM, OK, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS, SINGULAR, STEEP_SEGMENT,
+                    TOO_FEW_POINTS, WRONG_CORNER_COUNT, X_NOT_INCREASING)
 from .kernel import kernel
 
 # ----------------------------------------------------------------------------- corner detection
@@ -706,12 +704,10 @@ def _polar_rotation(m, out):
 
 
 @kernel(**JIT)
-def _closed_form(q, u, w, corners, info):
-    """Paper eqs. (9)-(14), the least squares by Householder QR. Returns (status, R, t)."""
-    n = corners.shape[0]
-    a = np.zeros((2 * n, 9))
-    b = np.empty(2 * n)
-    for i in range(n):
+def _system(q, u, w, corners, a, b):
+    """The stacked 2n x 9 system A x = b of eqs. (9)-(10) into a (zeroed here) and b."""
+    a[:, :] = 0.0
+    for i in range(corners.shape[0]):
         p0 = corners[i, 0]
         p1 = corners[i, 1]
         a[2 * i, 0] = p0
@@ -728,13 +724,11 @@ def _closed_form(q, u, w, corners, info):
         a[2 * i + 1, 8] = 1.0
         b[2 * i] = q[i, 0]
         b[2 * i + 1] = q[i, 2]
-    x = np.empty(9)
-    rank = _householder_lstsq(a, b, x)
-    rot = np.empty((3, 3))
-    t = np.empty(3)
-    if rank < 9:
-        info[0] = rank
-        return CF_RANK, rot, t
+
+
+@kernel(**JIT)
+def _pose_from_x(x, rot, t):
+    """Eqs. (12)-(14): x = rows of M = [r1 r3 t] -> the nearest rotation and the rescaled translation."""
     r_hat = np.empty((3, 3))
     for k in range(3):
         r_hat[k, 0] = x[3 * k]
@@ -745,7 +739,7 @@ def _closed_form(q, u, w, corners, info):
     r_hat[2, 1] = r_hat[0, 2] * r_hat[1, 0] - r_hat[1, 2] * r_hat[0, 0]
     norm_hat = math.sqrt(np.sum(r_hat * r_hat))
     if not math.isfinite(norm_hat) or norm_hat == 0:
-        return CF_DEGENERATE, rot, t
+        return CF_DEGENERATE
     if not _polar_rotation(r_hat, rot):
         uu, _, vt = np.linalg.svd(r_hat)
         _matmul3(uu, vt, rot)
@@ -756,15 +750,33 @@ def _closed_form(q, u, w, corners, info):
     scale = math.sqrt(np.sum(rot * rot)) / norm_hat
     for k in range(3):
         t[k] *= scale
-    return OK, rot, t
+    return OK
+
+
+@kernel(**JIT)
+def _closed_form(q, u, w, corners, info):
+    """Paper eqs. (9)-(14), the least squares by Householder QR. Returns (status, R, t)."""
+    n = corners.shape[0]
+    a = np.empty((2 * n, 9))
+    b = np.empty(2 * n)
+    _system(q, u, w, corners, a, b)
+    x = np.empty(9)
+    rank = _householder_lstsq(a, b, x)
+    rot = np.empty((3, 3))
+    t = np.empty(3)
+    if rank < 9:
+        info[0] = rank
+        return CF_RANK, rot, t
+    return _pose_from_x(x, rot, t), rot, t
 
 
 @kernel(**JIT)
 def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, cov_out):
     """Levenberg-Marquardt + Gauss-Newton polish (unless polish is False) on SO(3) x R^3 (see solver.refine).
 
-    Returns (status, R, t, residuals, iterations, chi2); cov_out gets the (6, 6) covariance over [delta_F, t], chi2 is
-    the residuals' squared Mahalanobis length under the covariance the corners induce (inf if that is singular).
+    Returns (status, R, t, residuals, iterations, chi2); cov_out gets the (6, 6) covariance over [delta_F, t] (none
+    if cov_out is (0, 0)), chi2 is the residuals' squared Mahalanobis length under the covariance the corners
+    induce (inf if that is singular).
     """
     n2 = 2 * corners.shape[0]
     rot = rot.copy()  # the current pose, updated in place: the loop allocates nothing
@@ -841,7 +853,6 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
             damping *= 10.0
             if damping > 1e8 or new_cost - cost <= POLISH_COST_TOLERANCE * cost:
                 it = max_iterations
-    _jacobian(u, w, corners, rot, jac)
     _residual_covariance(u, w, rot, corner_cov, sigma_r)
     information = np.empty((n2, n2))
     invertible = _spd_inverse(sigma_r, information)
@@ -850,6 +861,9 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
             return SINGULAR, rot, t, r, iterations, np.inf
         weight = information
     chi2 = _quadratic(r, information) if invertible else np.inf
+    if cov_out.shape[0] == 0:  # no covariance wanted (the basin search's triage): half the cost of a short run
+        return OK, rot, t, r, iterations, chi2
+    _jacobian(u, w, corners, rot, jac)
     _normal_equations(jac, weight, r, jw, hessian, gradient)
     bread = np.empty((6, 6))
     if not _spd_inverse(hessian, bread):
@@ -898,98 +912,3 @@ def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, 
     t_out[:] = t2
     r_out[:] = r2
     return status, iterations
-
-
-_largest_eigenvalue = kernel(**JIT)(largest_eigenvalue)
-
-
-@kernel(**JIT)
-def _position_sigma(cov):
-    """estimator.position_sigma of cov[:3, :3], compiled: every accepted pose is checked against it."""
-    a, b, c, d, e, f = cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 1], cov[1, 2], cov[2, 2]
-    for v in (a, b, c, d, e, f):
-        if not math.isfinite(v):
-            return np.nan
-    return math.sqrt(max(_largest_eigenvalue(a, b, c, d, e, f), 0.0))
-
-
-@kernel(**JIT)
-def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
-             info):
-    """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,
-    position_sigma); the last is NaN unless a pose is accepted."""
-    n = u.shape[0]
-    rot_out[:, :] = np.nan  # stays NaN unless a pose is accepted
-    t_out[:] = np.nan
-    cov_out[:, :] = np.nan
-    jac = np.empty((2 * n, 2 * (n + 1)))
-    line_var = np.empty(2 * (n + 1))
-    status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info, np.empty((n + 1, 10)))
-    if status != OK:
-        return status, 0, np.nan, np.nan, np.nan, np.nan
-    status, rot, t = _closed_form(q, u, w, corners, info)
-    if status != OK:
-        return status, 0, fit_rms, np.nan, np.nan, np.nan
-    cf_rot[:, :] = rot
-    cf_t[:] = t
-    r = np.empty(2 * n)
-    _residuals(q, u, w, corners, rot, t, r)
-    cf_err = _unstack_residuals(r, cf_res)
-    corner_cov = np.empty((2 * n, 2 * n))
-    for a in range(2 * n):
-        for b in range(2 * n):
-            acc = 0.0
-            for k in range(2 * n + 2):
-                acc += jac[a, k] * line_var[k] * jac[b, k]
-            corner_cov[a, b] = acc
-    max_it = int(opt[O_MAXIT]) if opt[O_REFINE] > 0 else 0
-    cov = np.empty((6, 6))
-    status, rot2, t2, r2, iterations, chi2 = _refine(q, u, w, corners, rot, t, corner_cov, opt[O_WEIGHTED] > 0,
-                                                     max_it, True, cov)
-    if status != OK:
-        return status, iterations, fit_rms, np.nan, cf_err, np.nan
-    if opt[O_REFINE] > 0:
-        rot, t, r = rot2, t2, r2
-    err = _unstack_residuals(r, res_out)
-    for v in rot.ravel():
-        if not math.isfinite(v):
-            return NOT_FINITE, iterations, fit_rms, err, cf_err, np.nan
-    for v in t:
-        if not math.isfinite(v):
-            return NOT_FINITE, iterations, fit_rms, err, cf_err, np.nan
-    dof = 2 * n - 6
-    # only a refined pose minimises the weighted residuals the test weighs; the closed form's are far larger
-    if opt[O_REFINE] > 0 and dof > 0 and not chi2 <= opt[O_MAXRATIO] * opt[O_MAXRATIO] * dof:
-        info[0] = chi2
-        info[1] = dof
-        return INCONSISTENT, iterations, fit_rms, err, cf_err, np.nan
-    if not err <= opt[O_MAXREPROJ]:
-        return REPROJECTION, iterations, fit_rms, err, cf_err, np.nan
-    half_w = width / 2 + opt[O_MARGIN]
-    half_l = length / 2 + opt[O_MARGIN]
-    for i in range(n):
-        mx = corners[i, 0] * rot[0, 0] + corners[i, 1] * rot[0, 2] + t[0]
-        my = corners[i, 0] * rot[1, 0] + corners[i, 1] * rot[1, 2] + t[1]
-        if abs(mx) > half_w or abs(my) > half_l:
-            info[0] = i
-            info[1] = mx
-            info[2] = my
-            return OUTSIDE_FOOTPRINT, iterations, fit_rms, err, cf_err, np.nan
-    rot_out[:, :] = rot
-    t_out[:] = t
-    # [delta_F, t] -> ROS [t, delta_G = R delta_F]: cov_ros = T cov T^T, T = [[0, I], [R, 0]]
-    rr = np.zeros((6, 6))
-    for k in range(3):
-        rr[k, 3 + k] = 1.0
-        for j in range(3):
-            rr[3 + k, j] = rot[k, j]
-    for a in range(6):
-        for b in range(6):
-            acc = 0.0
-            for i in range(6):
-                if rr[a, i] == 0.0:
-                    continue
-                for j in range(6):
-                    acc += rr[a, i] * cov[i, j] * rr[b, j]
-            cov_out[a, b] = acc
-    return OK, iterations, fit_rms, err, cf_err, _position_sigma(cov_out)

@@ -102,9 +102,9 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
 
 
 def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
-    """The common case in a single compiled call (corners, closed form, refinement, checks); four-ridge
-    gauges and poses the basin search must decide go to the staged pipeline."""
-    if gauge.n_ridges == 4:  # several starting poses (solver.four_ridge_candidates)
+    """The common case in a single compiled call (corners, closed form, refinement, basin search, checks);
+    four-ridge gauges, with several starting poses, go to the staged pipeline."""
+    if gauge.n_ridges == 4:  # several starting poses (stages.four_ridge_starts)
         return estimate_multistart(points, gauge, options)
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
@@ -116,7 +116,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     info = np.zeros(4)
     start = time.perf_counter()
     try:
-        status, iterations, fit_rms, error, cf_error, sigma = kernels().estimate(
+        status, iterations, fit_rms, error, cf_error, sigma, search_starts = kernels().estimate(
             points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, options.kernel_vector, corners, rot, t,
             cov, cf_rot, cf_t, cf_res, res, info)
     except np.linalg.LinAlgError as exc:
@@ -128,15 +128,11 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     if status in (codes.CF_RANK, codes.CF_DEGENERATE):
         return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
     ok = status == codes.OK
-    doubtful = status in (codes.INCONSISTENT, codes.REPROJECTION, codes.OUTSIDE_FOOTPRINT)
-    if options.basin_search and options.refine and (doubtful or (ok and sigma > options.basin_search_min_sigma)):
-        # poorly determined, or perhaps in a wrong basin: the staged pipeline, whose basin search decides
-        return estimate_multistart(points, gauge, options)
     return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
                         corners=corners, reprojection_error=error, covariance=cov,
                         closed_form=PoseSolution(cf_rot, cf_t, cf_res), refined=options.refine,
                         iterations=iterations, fit_rms=fit_rms, timings=timings,
-                        position_sigma=sigma if ok else None)
+                        position_sigma=sigma if ok else None, search_starts=int(search_starts))
 
 
 def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:

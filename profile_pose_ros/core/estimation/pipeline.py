@@ -6,7 +6,6 @@ hands the rest here: four-ridge gauges (several starts) and poses that need the 
 from __future__ import annotations
 
 import time
-from functools import lru_cache
 
 import numpy as np
 
@@ -14,9 +13,8 @@ from ..model.gauge import Gauge
 from ..model.rotation import so3_log
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_inconsistent,
                      reason_outside, reason_reprojection, ros_covariance)
-from .solver import (PoseSolution, Refinement, SolverError, closed_form, four_ridge_candidates, search_minima,
-                     solution_cost)
-from .stages import detect_corners, refine_pose
+from .solver import PoseSolution, Refinement, SolverError, closed_form, solution_cost
+from .stages import detect_corners, four_ridge_starts, refine_pose, search_minima
 
 
 def check_solution(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, options: EstimatorOptions,
@@ -46,21 +44,12 @@ def check_solution(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, op
     return ""
 
 
-def needs_search(result: Refinement, cost: float, n_corners: int, weighted: bool, options: EstimatorOptions) -> bool:
-    """Search when the pose is poorly determined, or (weighted) when its cost is implausible for the noise."""
+def needs_search(result: Refinement, reason: str, options: EstimatorOptions) -> bool:
+    """Search when the pose is poorly determined, or its checks refuse it (perhaps a neighbouring basin holds
+    the right minimum): the rule of the compiled one-call path (compiled/pipeline_kernel.py)."""
     if not (options.basin_search and options.refine):
         return False
-    if position_sigma(result.covariance[3:, 3:]) > options.basin_search_min_sigma:
-        return True
-    return weighted and cost > _implausible_cost(max(2 * n_corners - 6, 1))
-
-
-@lru_cache(maxsize=None)
-def _implausible_cost(dof: int) -> float:
-    """The chi-square value a correct minimum exceeds with probability 1e-4."""
-    from scipy.special import gammainccinv
-
-    return float(2.0 * gammainccinv(dof / 2.0, 1e-4))
+    return bool(reason) or not position_sigma(result.covariance[3:, 3:]) <= options.basin_search_min_sigma
 
 
 def estimate_multistart(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
@@ -75,7 +64,7 @@ def estimate_multistart(points: np.ndarray, gauge: Gauge, options: EstimatorOpti
     corners = found.corners
     start = time.perf_counter()
     try:
-        starts = four_ridge_candidates(gauge, corners) if gauge.n_ridges == 4 else [closed_form(gauge, corners)]
+        starts = four_ridge_starts(gauge, corners) if gauge.n_ridges == 4 else [closed_form(gauge, corners)]
     except (SolverError, np.linalg.LinAlgError) as exc:
         return PoseEstimate(False, f"closed form: {exc}", corners=corners, timings=timings)
     timings["closed_form"] = time.perf_counter() - start
@@ -101,17 +90,19 @@ def estimate_multistart(points: np.ndarray, gauge: Gauge, options: EstimatorOpti
     if rival is not None:
         return PoseEstimate(False, reason_ambiguous(rival, result, cost), corners=corners, closed_form=initial,
                             timings=timings)
-    search_starts = 0
-    if needs_search(result, cost, len(corners), weighted, options):
-        search_start = time.perf_counter()
-        result, search_starts = search_minima(gauge, corners, result, corner_cov, weighted, options.max_iterations,
-                                              refine_pose)
-        timings["search"] = time.perf_counter() - search_start
     solution, refined, iterations = initial, False, 0
     if options.refine:
         solution, refined, iterations = result.solution, True, result.iterations
         timings["refinement"] = time.perf_counter() - start
     reason = check_solution(gauge, solution, corners, options, corner_cov)
+    search_starts = 0
+    if needs_search(result, reason, options):
+        search_start = time.perf_counter()
+        lowest, search_starts = search_minima(gauge, corners, result, corner_cov, weighted, options.max_iterations)
+        timings["search"] = time.perf_counter() - search_start
+        if lowest is not result:
+            result, solution, iterations = lowest, lowest.solution, lowest.iterations
+            reason = check_solution(gauge, solution, corners, options, corner_cov)
     estimate = PoseEstimate(
         ok=not reason, reason=reason, corners=corners, reprojection_error=solution.reprojection_error,
         closed_form=initial, refined=refined, iterations=iterations, fit_rms=found.fit_rms, timings=timings,

@@ -75,6 +75,8 @@ class EstimatorOptions:
         v[codes.O_SPIKE] = c.spike_threshold
         v[codes.O_MAXRATIO] = self.max_residual_ratio
         v[codes.O_GAP] = np.nan if c.virtual_corner_gap is None else c.virtual_corner_gap
+        v[codes.O_SEARCH] = 1.0 if self.basin_search and self.refine else 0.0
+        v[codes.O_SEARCHSIG] = self.basin_search_min_sigma
         v.setflags(write=False)
         return v
 

@@ -14,7 +14,7 @@ from typing import Protocol
 import numpy as np
 
 from ..model.gauge import Gauge
-from ..model.rotation import nearest_rotation, skew, so3_exp
+from ..model.rotation import nearest_rotation, skew
 
 
 class RidgeLines(Protocol):
@@ -101,36 +101,6 @@ def paper_closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
     return _pose_from_m(gauge, corners, np.linalg.lstsq(a, b, rcond=None)[0])
 
 
-def four_ridge_candidates(gauge: RidgeLines, corners: np.ndarray) -> list[PoseSolution]:
-    """Starting poses for n = 4, where A x = b leaves one free direction: x = x0 + alpha v.
-
-    alpha is fixed by the rotation constraints |r1| = |r3| = 1, r1 . r3 = 0: their squared violation is
-    a quartic in alpha, and every real root of its derivative (a cubic) is a candidate. The caller
-    refines each candidate and keeps the best, so a wrong root cannot win on a clean fit.
-    """
-    a, b = _system(gauge, corners)
-    x0 = np.linalg.lstsq(a, b, rcond=None)[0]
-    v = np.linalg.svd(a)[2][-1]  # the null direction of the rank-8 system
-    i1, i3 = [0, 3, 6], [1, 4, 7]  # r1 and r3 inside x (rows of M)
-
-    def quadratic(ia, ib):  # coefficients of (x0 + alpha v)_a . (x0 + alpha v)_b in alpha
-        return np.array([v[ia] @ v[ib], x0[ia] @ v[ib] + v[ia] @ x0[ib], x0[ia] @ x0[ib]])
-
-    violations = [quadratic(i1, i1) - [0, 0, 1], quadratic(i3, i3) - [0, 0, 1], quadratic(i1, i3)]
-    quartic = sum(np.polymul(c, c) for c in violations)
-    roots = np.roots(np.polyder(quartic))
-    alphas = roots[np.abs(roots.imag) < 1e-9 * (1 + np.abs(roots.real))].real
-    candidates = []
-    for alpha in alphas:
-        try:
-            candidates.append(_pose_from_m(gauge, corners, x0 + alpha * v))
-        except SolverError:
-            continue
-    if not candidates:
-        raise SolverError("no real starting pose for the 4-ridge gauge")
-    return candidates
-
-
 def _ridge_rows(gauge: RidgeLines) -> np.ndarray:
     """(n, 2, 3) C_i with r_i = C_i P_i - q_i: the x and z offsets from ridge i at P's y."""
     n = len(gauge.u)
@@ -163,8 +133,6 @@ def residual_covariance(gauge: Gauge, rotation: np.ndarray, corner_covariance: n
     return mapping @ corner_covariance @ mapping.T
 
 
-
-
 @dataclass(frozen=True)
 class Refinement:
     solution: PoseSolution
@@ -178,94 +146,3 @@ def solution_cost(gauge: Gauge, solution: PoseSolution, corner_covariance: np.nd
     if not weighted or corner_covariance is None or not corner_covariance.size:
         return float(r @ r)
     return float(r @ np.linalg.solve(residual_covariance(gauge, solution.rotation, corner_covariance), r))
-
-
-SEARCH_SCALES = (3.0, 8.0, 20.0)  # hop lengths along a weak mode, in its standard deviations
-SEARCH_MODES = 2  # the weakest directions of the pose
-SEARCH_ROUNDS = 3  # hop again from an improved minimum
-MAX_SUBSETS = 5
-TRIAGE_ITERATIONS = 4  # a few LM steps tell which basin a start is in
-TRIAGE_KEEP = 2  # starts refined fully per round
-TRIAGE_MARGIN = 1.5  # a triaged start this much above the best is not refined further
-
-
-@dataclass(frozen=True)
-class RidgeSubset:
-    """Some of a gauge's ridges (RidgeLines), for four_ridge_candidates() on a subset."""
-
-    q: np.ndarray
-    u: np.ndarray
-    w: np.ndarray
-
-
-def subset_starts(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
-    """Starting poses from 4-ridge subsets (n >= 5): each subset's null-space candidates.
-
-    The n-ridge linear closed form blends all corners into one least-squares answer; when the ridges are
-    nearly parallel it lands in the wrong basin, while a well-spread subset of four often does not.
-    """
-    n = len(corners)
-    if n < 5:
-        return []
-    subsets = [[(k + j) % n for j in range(4)] for k in range(min(n, MAX_SUBSETS))]
-    starts = []
-    for subset in subsets:
-        ridges = RidgeSubset(gauge.q[subset], gauge.u[subset], gauge.w[subset])
-        try:
-            candidates = four_ridge_candidates(ridges, corners[subset])
-        except (SolverError, np.linalg.LinAlgError):
-            continue
-        starts += [PoseSolution(c.rotation, c.translation, corner_residuals(gauge, corners, c.rotation, c.translation))
-                   for c in candidates]
-    return starts
-
-
-def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_covariance: np.ndarray,
-                  weighted: bool, max_iterations: int, refine_fn) -> tuple[Refinement, int]:
-    """The lowest minimum found around a refined pose; returns it and how many starts were tried.
-
-    When the pose is poorly determined (a long, curved valley of the cost along the weak mode: tilt of
-    the laser plane with a shift along the ridges) a local method can stop in a neighbouring basin
-    several standard deviations away. Starts: the 4-ridge subsets' candidates, then hops of 3, 8 and
-    20 standard deviations along the two weakest modes of the current best, repeated while it improves.
-    """
-    best, best_cost, tried = found, solution_cost(gauge, found.solution, corner_covariance, weighted), 0
-
-    def improve(starts: list[PoseSolution]) -> bool:
-        """Triage every start with a few iterations, then refine the most promising ones fully."""
-        nonlocal best, best_cost, tried
-        scored = []
-        for start in starts:
-            try:
-                short = refine_fn(gauge, corners, start, corner_covariance, weighted, TRIAGE_ITERATIONS, polish=False)
-            except np.linalg.LinAlgError:
-                continue
-            scored.append((solution_cost(gauge, short.solution, corner_covariance, weighted), short.solution))
-        tried += len(starts)
-        improved = False
-        for cost, solution in sorted(scored, key=lambda item: item[0])[:TRIAGE_KEEP]:
-            if cost >= best_cost * TRIAGE_MARGIN:
-                break
-            try:
-                result = refine_fn(gauge, corners, solution, corner_covariance, weighted, max_iterations)
-            except np.linalg.LinAlgError:
-                continue
-            cost = solution_cost(gauge, result.solution, corner_covariance, weighted)
-            if cost < best_cost * (1.0 - 1e-6):
-                best, best_cost, improved = result, cost, True
-        return improved
-
-    improve(subset_starts(gauge, corners))
-    for _ in range(SEARCH_ROUNDS):
-        centre = best.solution
-        variances, directions = np.linalg.eigh(best.covariance)
-        hops = []
-        for j in range(1, SEARCH_MODES + 1):
-            mode = directions[:, -j] * np.sqrt(max(variances[-j], 0.0))
-            for hop in (sign * scale * mode for scale in SEARCH_SCALES for sign in (1.0, -1.0)):
-                rotation = centre.rotation @ so3_exp(hop[:3])
-                translation = centre.translation + hop[3:]
-                hops.append(PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation)))
-        if not improve(hops):
-            break
-    return best, tried

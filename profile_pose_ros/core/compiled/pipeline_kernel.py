@@ -1,0 +1,134 @@
+"""The estimator's common path in one compiled call: corners, closed form, refinement, the basin search
+when the pose is poorly determined or its checks refuse it, and the checks. A profile costs one dispatch
+from Python, the poorly determined ones too.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..model.sym3 import largest_eigenvalue
+from .codes import (INCONSISTENT, JIT, NOT_FINITE, O_MARGIN, O_MAXIT, O_MAXRATIO, O_MAXREPROJ, O_REFINE, O_SEARCH,
+                    O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT, REPROJECTION)
+from .estimate_kernel import _closed_form, _detect, _refine, _residuals, _unstack_residuals
+from .kernel import kernel
+from .search_kernel import _cost, search_minima
+
+_largest_eigenvalue = kernel(**JIT)(largest_eigenvalue)
+
+
+@kernel(**JIT)
+def _position_sigma(cov):
+    """estimator.position_sigma of cov[:3, :3], compiled: every accepted pose is checked against it."""
+    a, b, c, d, e, f = cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 1], cov[1, 2], cov[2, 2]
+    for v in (a, b, c, d, e, f):
+        if not math.isfinite(v):
+            return np.nan
+    return math.sqrt(max(_largest_eigenvalue(a, b, c, d, e, f), 0.0))
+
+
+@kernel(**JIT)
+def _check(corners, rot, t, r, chi2, refined, width, length, opt, info, res_out):
+    """Why (rot, t) is no pose, as a status (OK if it is one): not finite; (refined only: the closed form's
+    residuals are far larger) residuals inconsistent with the corners' covariance; corners off their ridges
+    by more than the bound; corners mapped off the footprint. Returns (status, reprojection error)."""
+    n = corners.shape[0]
+    err = _unstack_residuals(r, res_out)
+    for v in rot.ravel():
+        if not math.isfinite(v):
+            return NOT_FINITE, err
+    for v in t:
+        if not math.isfinite(v):
+            return NOT_FINITE, err
+    dof = 2 * n - 6
+    if refined and dof > 0 and not chi2 <= opt[O_MAXRATIO] * opt[O_MAXRATIO] * dof:
+        info[0] = chi2
+        info[1] = dof
+        return INCONSISTENT, err
+    if not err <= opt[O_MAXREPROJ]:
+        return REPROJECTION, err
+    half_w = width / 2 + opt[O_MARGIN]
+    half_l = length / 2 + opt[O_MARGIN]
+    for i in range(n):
+        mx = corners[i, 0] * rot[0, 0] + corners[i, 1] * rot[0, 2] + t[0]
+        my = corners[i, 0] * rot[1, 0] + corners[i, 1] * rot[1, 2] + t[1]
+        if abs(mx) > half_w or abs(my) > half_l:
+            info[0] = i
+            info[1] = mx
+            info[2] = my
+            return OUTSIDE_FOOTPRINT, err
+    return OK, err
+
+
+@kernel(**JIT)
+def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
+             info):
+    """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,
+    position_sigma, search_starts); position_sigma is NaN unless a pose is accepted, search_starts 0 unless
+    the basin search ran."""
+    n = u.shape[0]
+    rot_out[:, :] = np.nan  # stays NaN unless a pose is accepted
+    t_out[:] = np.nan
+    cov_out[:, :] = np.nan
+    jac = np.empty((2 * n, 2 * (n + 1)))
+    line_var = np.empty(2 * (n + 1))
+    status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info, np.empty((n + 1, 10)))
+    if status != OK:
+        return status, 0, np.nan, np.nan, np.nan, np.nan, 0
+    status, rot, t = _closed_form(q, u, w, corners, info)
+    if status != OK:
+        return status, 0, fit_rms, np.nan, np.nan, np.nan, 0
+    cf_rot[:, :] = rot
+    cf_t[:] = t
+    r = np.empty(2 * n)
+    _residuals(q, u, w, corners, rot, t, r)
+    cf_err = _unstack_residuals(r, cf_res)
+    corner_cov = np.empty((2 * n, 2 * n))
+    for a in range(2 * n):
+        for b in range(2 * n):
+            acc = 0.0
+            for k in range(2 * n + 2):
+                acc += jac[a, k] * line_var[k] * jac[b, k]
+            corner_cov[a, b] = acc
+    refined = opt[O_REFINE] > 0
+    weighted = opt[O_WEIGHTED] > 0
+    max_it = int(opt[O_MAXIT]) if refined else 0
+    cov = np.empty((6, 6))
+    status, rot2, t2, r2, iterations, chi2 = _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_it, True, cov)
+    if status != OK:
+        return status, iterations, fit_rms, np.nan, cf_err, np.nan, 0
+    if refined:
+        rot, t, r = rot2, t2, r2
+    status, err = _check(corners, rot, t, r, chi2, refined, width, length, opt, info, res_out)
+    tried = 0
+    if opt[O_SEARCH] > 0 and refined and (status != OK or not _position_sigma(cov[3:, 3:]) <= opt[O_SEARCHSIG]):
+        # poorly determined, or refused: perhaps a neighbouring basin holds the right minimum
+        best_rot, best_t, best_r, best_cov = np.empty((3, 3)), np.empty(3), np.empty(2 * n), np.empty((6, 6))
+        improved, tried, its = search_minima(q, u, w, corners, corner_cov, weighted, max_it, rot, t, cov, best_rot,
+                                             best_t, best_r, best_cov)
+        if improved:
+            rot, t, r, iterations = best_rot, best_t, best_r, its
+            cov[:, :] = best_cov
+            chi2 = _cost(q, u, w, corners, rot, t, corner_cov, True)
+            status, err = _check(corners, rot, t, r, chi2, refined, width, length, opt, info, res_out)
+    if status != OK:
+        return status, iterations, fit_rms, err, cf_err, np.nan, tried
+    rot_out[:, :] = rot
+    t_out[:] = t
+    # [delta_F, t] -> ROS [t, delta_G = R delta_F]: cov_ros = T cov T^T, T = [[0, I], [R, 0]]
+    rr = np.zeros((6, 6))
+    for k in range(3):
+        rr[k, 3 + k] = 1.0
+        for j in range(3):
+            rr[3 + k, j] = rot[k, j]
+    for a in range(6):
+        for b in range(6):
+            acc = 0.0
+            for i in range(6):
+                if rr[a, i] == 0.0:
+                    continue
+                for j in range(6):
+                    acc += rr[a, i] * cov[i, j] * rr[b, j]
+            cov_out[a, b] = acc
+    return OK, iterations, fit_rms, err, cf_err, _position_sigma(cov_out), tried
