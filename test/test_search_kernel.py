@@ -1,0 +1,42 @@
+"""The compiled basin search's pieces against numpy: the cubic's real roots, the four-ridge starts."""
+import numpy as np
+from hypothesis import given, settings, strategies as st
+
+from profile_pose_ros.core import render_profile, sample_pose, true_corners
+from profile_pose_ros.core.compiled.search_kernel import _cubic_real_roots
+from profile_pose_ros.core.design.gauge_design import random_gauge
+from profile_pose_ros.core.estimation.stages import four_ridge_starts
+from profile_pose_ros.core.model.rotation import rotation_angle
+
+coefficient = st.floats(-1e3, 1e3, allow_nan=False).filter(lambda c: c == 0 or abs(c) > 1e-6)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(coefficient, min_size=4, max_size=4))
+def test_cubic_real_roots_are_numpys(c):
+    if not any(c[:3]):
+        return
+    roots = np.empty(3)
+    count = _cubic_real_roots(*c, roots)
+    expected = np.roots(np.trim_zeros(np.array(c), "f"))
+    real = np.sort(expected[np.abs(expected.imag) < 1e-9 * (1 + np.abs(expected.real))].real)
+    got = np.sort(roots[:count])
+    scale = 1 + np.abs(real).max(initial=0)
+    # a near-double root may come as one or two roots: compare the sets of distinct values
+    distinct = lambda r: r[np.concatenate([[True], np.diff(r) > 1e-6 * scale])] if r.size else r  # noqa: E731
+    assert distinct(got).shape == distinct(real).shape, (c, got, expected)
+    assert np.allclose(distinct(got), distinct(real), rtol=1e-7, atol=1e-7 * scale), (c, got, expected)
+
+
+def test_four_ridge_starts_hold_the_true_pose(rng):
+    """Noise-free corners of a four-ridge gauge: one of the starts is the pose itself."""
+    for _ in range(20):
+        gauge = random_gauge(4, rng)
+        rotation, translation = sample_pose(gauge, rng)
+        render_profile(gauge, rotation, translation)  # the pose lights the gauge
+        corners = true_corners(gauge, rotation, translation)
+        starts = four_ridge_starts(gauge, corners)
+        assert 1 <= len(starts) <= 3
+        best = min(starts, key=lambda s: np.linalg.norm(s.translation - translation))
+        assert np.linalg.norm(best.translation - translation) < 1e-9
+        assert rotation_angle(best.rotation, rotation) < 1e-9
