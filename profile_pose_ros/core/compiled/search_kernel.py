@@ -50,57 +50,81 @@ def _cubic_real_roots(c3, c2, c1, c0, roots):
     """Real roots of c3 x^3 + c2 x^2 + c1 x + c0 into roots; returns how many. A complex pair whose
     imaginary part is below ROOT_IMAG_TOLERANCE (relative) counts as a real root (a near-double root is a
     start too)."""
-    if c3 == 0.0:
-        if c2 == 0.0:
-            if c1 == 0.0:
-                return 0
-            roots[0] = -c0 / c1
-            return 1
-        disc = c1 * c1 - 4.0 * c2 * c0
-        if disc < 0.0:
-            re, im = -c1 / (2.0 * c2), math.sqrt(-disc) / abs(2.0 * c2)
-            if im < ROOT_IMAG_TOLERANCE * (1.0 + abs(re)):
-                roots[0] = re
-                return 1
+    zeros = 0
+    while c0 == 0.0 and (c3 != 0.0 or c2 != 0.0 or c1 != 0.0):  # a root at zero, exactly (as numpy.roots)
+        c0, c1, c2, c3 = c1, c2, c3, 0.0
+        roots[zeros] = 0.0
+        zeros += 1
+    return zeros + _nonzero_roots(c3, c2, c1, c0, roots[zeros:])
+
+
+@kernel(**JIT)
+def _quadratic_roots(c2, c1, c0, roots):
+    """Real roots of c2 x^2 + c1 x + c0 (c0 != 0), without cancellation; a near-real complex pair as one."""
+    if c2 == 0.0:
+        if c1 == 0.0:
             return 0
-        roots[0] = (-c1 + math.sqrt(disc)) / (2.0 * c2)
-        roots[1] = (-c1 - math.sqrt(disc)) / (2.0 * c2)
-        return 2
+        roots[0] = -c0 / c1
+        return 1
+    disc = c1 * c1 - 4.0 * c2 * c0
+    if disc < 0.0:
+        re, im = -c1 / (2.0 * c2), math.sqrt(-disc) / abs(2.0 * c2)
+        if im < ROOT_IMAG_TOLERANCE * (1.0 + abs(re)):
+            roots[0] = re
+            return 1
+        return 0
+    half = -0.5 * (c1 + math.copysign(math.sqrt(disc), c1))
+    roots[0] = half / c2
+    roots[1] = c0 / half  # c0 != 0, so half != 0
+    return 2
+
+
+@kernel(**JIT)
+def _newton(c3, c2, c1, c0, x):
+    """x polished by a few Newton steps on the cubic."""
+    for _ in range(4):
+        f = ((c3 * x + c2) * x + c1) * x + c0
+        df = (3.0 * c3 * x + 2.0 * c2) * x + c1
+        if df == 0.0:
+            break
+        x -= f / df
+    return x
+
+
+@kernel(**JIT)
+def _nonzero_roots(c3, c2, c1, c0, roots):
+    """_cubic_real_roots when c0 != 0: the real root of largest size (trigonometric form when there are
+    three, else Cardano's), polished, then the two of the quadratic left when it is divided out (from the
+    constant term up: stable for the largest root); the closed forms' other roots lose their digits to
+    cancellation on badly scaled cubics."""
+    if c3 == 0.0:
+        return _quadratic_roots(c2, c1, c0, roots)
     a, b, c = c2 / c3, c1 / c3, c0 / c3
     p = b - a * a / 3.0
     qq = 2.0 * a * a * a / 27.0 - a * b / 3.0 + c
     disc = 0.25 * qq * qq + p * p * p / 27.0
     shift = -a / 3.0
-    count = 0
-    if disc > 0.0:
-        s = math.sqrt(disc)
-        m = math.copysign(abs(-0.5 * qq + s) ** (1.0 / 3.0), -0.5 * qq + s)
-        n = math.copysign(abs(-0.5 * qq - s) ** (1.0 / 3.0), -0.5 * qq - s)
-        roots[0] = m + n + shift
-        count = 1
-        re, im = -0.5 * (m + n) + shift, 0.5 * math.sqrt(3.0) * abs(m - n)
-        if im < ROOT_IMAG_TOLERANCE * (1.0 + abs(re)):
-            roots[1] = re
-            count = 2
-    elif p == 0.0:
-        roots[0] = shift
-        count = 1
-    else:
+    if disc <= 0.0 and p < 0.0:
         radius = 2.0 * math.sqrt(-p / 3.0)
         angle = math.acos(max(-1.0, min(1.0, 3.0 * qq / (p * radius))))
+        x0 = shift
         for k in range(3):
-            roots[k] = radius * math.cos((angle - 2.0 * math.pi * k) / 3.0) + shift
-        count = 3
-    for k in range(count):  # Newton steps to full precision (the trigonometric form loses a few digits)
-        x = roots[k]
-        for _ in range(3):
-            f = ((c3 * x + c2) * x + c1) * x + c0
-            df = (3.0 * c3 * x + 2.0 * c2) * x + c1
-            if df == 0.0:
-                break
-            x -= f / df
-        roots[k] = x
-    return count
+            x = radius * math.cos((angle - 2.0 * math.pi * k) / 3.0) + shift
+            if abs(x) > abs(x0):
+                x0 = x
+    else:
+        s = math.sqrt(max(disc, 0.0))
+        m = math.copysign(abs(-0.5 * qq + s) ** (1.0 / 3.0), -0.5 * qq + s)
+        n = math.copysign(abs(-0.5 * qq - s) ** (1.0 / 3.0), -0.5 * qq - s)
+        x0 = m + n + shift
+    x0 = _newton(c3, c2, c1, c0, x0)
+    roots[0] = x0
+    # c3 x^2 + b1 x + b0 = the cubic / (x - x0), from the constant term up (stable for the largest root)
+    b0 = -c0 / x0
+    b1 = (b0 - c1) / x0
+    if b0 == 0.0:  # underflow: x0 dwarfs the other roots, which are then below anything measurable
+        return 1
+    return 1 + _quadratic_roots(c3, b1, b0, roots[1:])
 
 
 @kernel(**JIT)

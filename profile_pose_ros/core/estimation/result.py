@@ -34,7 +34,7 @@ class EstimatorOptions:
     max_residual_ratio: float = 4.0
     footprint_margin: float = 2e-3  # m; mapped corners must lie this close to the gauge's footprint
     max_iterations: int = 30
-    basin_search: bool = True  # look for a lower minimum around a poorly determined pose (solver.search_minima)
+    basin_search: bool = True  # look for a lower minimum around a poorly determined pose (compiled/search_kernel.py)
     basin_search_min_sigma: float = 2.5e-4  # m; search when the refined position's largest std exceeds this
     # m; reject a pose whose position's largest std exceeds this: the profile determines it so poorly that its
     # linearised covariance understates the error (docs/estimator.md, "Covariance"), so nothing downstream
