@@ -3,9 +3,8 @@ import numpy as np
 from hypothesis import given, settings, strategies as st
 
 from profile_pose_ros.core import render_profile, sample_pose, true_corners
-from profile_pose_ros.core.compiled.search_kernel import _cubic_real_roots
+from profile_pose_ros.core.compiled.search_kernel import _cubic_real_roots, four_ridge_starts
 from profile_pose_ros.core.design.gauge_design import random_gauge
-from profile_pose_ros.core.estimation.stages import four_ridge_starts
 from profile_pose_ros.core.model.rotation import rotation_angle
 
 coefficient = st.floats(-1e3, 1e3, allow_nan=False).filter(lambda c: c == 0 or abs(c) > 1e-6)
@@ -39,8 +38,9 @@ def test_four_ridge_starts_hold_the_true_pose(rng):
         rotation, translation = sample_pose(gauge, rng)
         render_profile(gauge, rotation, translation)  # the pose lights the gauge
         corners = true_corners(gauge, rotation, translation)
-        starts = four_ridge_starts(gauge, corners)
-        assert 1 <= len(starts) <= 3
-        best = min(starts, key=lambda s: np.linalg.norm(s.translation - translation))
-        assert np.linalg.norm(best.translation - translation) < 1e-9
-        assert rotation_angle(best.rotation, rotation) < 1e-9
+        rotations, translations = np.empty((3, 3, 3)), np.empty((3, 3))
+        count = four_ridge_starts(gauge.q, gauge.u, gauge.w, np.ascontiguousarray(corners), rotations, translations)
+        assert 1 <= count <= 3
+        best = np.argmin(np.linalg.norm(translations[:count] - translation, axis=1))
+        assert np.linalg.norm(translations[best] - translation) < 1e-9
+        assert rotation_angle(rotations[best], rotation) < 1e-9

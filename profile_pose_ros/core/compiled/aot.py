@@ -141,9 +141,8 @@ def load(timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile pipeline_kernel.estimate, estimate_kernel.refine_pose, .detect, search_kernel.search_minima,
-    .four_ridge_starts, decode_kernel.decode_xz and dense_kernel.refine_dense with numba.pycc (in its own process:
-    it loads LLVM)."""
+    """Compile pipeline_kernel.estimate, estimate_kernel.refine_pose, .detect, decode_kernel.decode_xz and
+    dense_kernel.refine_dense with numba.pycc (in its own process: it loads LLVM)."""
     import warnings
 
     from numba import types
@@ -152,7 +151,7 @@ def build_into(directory: Path) -> None:
         warnings.simplefilter("ignore")
         from numba.pycc import CC
 
-    from . import decode_kernel, dense_kernel, estimate_kernel, pipeline_kernel, search_kernel
+    from . import decode_kernel, dense_kernel, estimate_kernel, pipeline_kernel
 
     f8 = types.float64
     array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
@@ -179,22 +178,6 @@ def build_into(directory: Path) -> None:
                     cov_out):
         return estimate_kernel.refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish,
                                            rot_out, t_out, r_out, cov_out)
-
-    search_signature = types.Tuple((boolean, int64, int64))(
-        frozen2, frozen1, frozen1, array2, array2, boolean, int64, array2, array1, array2, array2, array1, array1,
-        array2)
-
-    @compiler.export("search_minima", search_signature)
-    def search_minima(q, u, w, corners, corner_cov, weighted, max_iterations, rot, t, cov, rot_out, t_out, r_out,
-                      cov_out):
-        return search_kernel.search_minima(q, u, w, corners, corner_cov, weighted, max_iterations, rot, t, cov,
-                                           rot_out, t_out, r_out, cov_out)
-
-    array3 = types.Array(f8, 3, "C")
-
-    @compiler.export("four_ridge_starts", int64(frozen2, frozen1, frozen1, array2, array3, array2))
-    def four_ridge_starts(q, u, w, corners, rots, ts):
-        return search_kernel.four_ridge_starts(q, u, w, corners, rots, ts)
 
     detect_signature = types.Tuple((int64, int64, f8))(array2, int64, frozen1, array2, array2, array1, array1, array2)
 

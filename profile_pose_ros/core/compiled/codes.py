@@ -19,6 +19,14 @@ REPROJECTION = 12
 OUTSIDE_FOOTPRINT = 13
 SINGULAR = 14
 INCONSISTENT = 15  # the corners' residuals are far beyond what the profile's own noise explains
+AMBIGUOUS = 16  # four ridges: another minimum far from the best fits the corners about as well
+NO_START = 17  # four ridges: the rotation constraints have no real solution along the free direction
+NO_CONVERGED = 18  # four ridges: no starting pose's refinement converged
+
+# two minima are rivals when the other's cost (chi-square) is this close to the best's and it lies this many
+# standard deviations (Mahalanobis, under the best minimum's covariance) away: the lower cost is a coin toss
+AMBIGUOUS_COST = 9.0
+AMBIGUOUS_DISTANCE = 5.0
 
 # decode_xz statuses (its count says how many points)
 DECODED, OFF_PLANE, INFINITE, ALL_INVALID = 0, 1, 2, 3

@@ -1,4 +1,5 @@
-"""The estimator's common path in one compiled call: corners, closed form, refinement, the basin search
+"""The estimator in one compiled call: corners, closed form (a four-ridge gauge's several starting poses,
+each refined, the lowest minimum kept unless a rival fits about as well), refinement, the basin search
 when the pose is poorly determined or its checks refuse it, and the checks. A profile costs one dispatch
 from Python, the poorly determined ones too.
 """
@@ -9,11 +10,12 @@ import math
 import numpy as np
 
 from ..model.sym3 import largest_eigenvalue
-from .codes import (INCONSISTENT, JIT, NOT_FINITE, O_MARGIN, O_MAXIT, O_MAXRATIO, O_MAXREPROJ, O_REFINE, O_SEARCH,
-                    O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT, REPROJECTION)
-from .estimate_kernel import _closed_form, _detect, _refine, _residuals, _unstack_residuals
+from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, INCONSISTENT, JIT, NO_CONVERGED, NO_START,
+                    NOT_FINITE, O_MARGIN, O_MAXIT, O_MAXRATIO, O_MAXREPROJ, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED,
+                    OK, OUTSIDE_FOOTPRINT, REPROJECTION)
+from .estimate_kernel import _closed_form, _detect, _quadratic, _refine, _residuals, _spd_inverse, _unstack_residuals
 from .kernel import kernel
-from .search_kernel import _cost, search_minima
+from .search_kernel import _cost, four_ridge_starts, search_minima
 
 _largest_eigenvalue = kernel(**JIT)(largest_eigenvalue)
 
@@ -62,6 +64,53 @@ def _check(corners, rot, t, r, chi2, refined, width, length, opt, info, res_out)
 
 
 @kernel(**JIT)
+def _start_outputs(q, u, w, corners, rot, t, cf_rot, cf_t, cf_res):
+    """The starting pose as the closed-form outputs; returns its reprojection error."""
+    cf_rot[:, :] = rot
+    cf_t[:] = t
+    r = np.empty(2 * corners.shape[0])
+    _residuals(q, u, w, corners, rot, t, r)
+    return _unstack_residuals(r, cf_res)
+
+
+@kernel(**JIT)
+def _so3_log(m, out):
+    """Rotation vector of a rotation matrix (angle < pi), as model.rotation.so3_log."""
+    cos_angle = min(max((m[0, 0] + m[1, 1] + m[2, 2] - 1.0) / 2.0, -1.0), 1.0)
+    angle = math.acos(cos_angle)
+    scale = 0.5 if angle < 1e-7 else angle / (2.0 * math.sin(angle))
+    out[0] = scale * (m[2, 1] - m[1, 2])
+    out[1] = scale * (m[0, 2] - m[2, 0])
+    out[2] = scale * (m[1, 0] - m[0, 1])
+
+
+@kernel(**JIT)
+def _rival(rots, ts, costs, count, best, cov):
+    """The first minimum that fits about as well as the best (costs within AMBIGUOUS_COST) but lies far from
+    it (beyond AMBIGUOUS_DISTANCE of its standard deviations): with four ridges (two redundant equations)
+    the corners can fit two poses centimetres apart, and the lower cost is then a coin toss (seen in the
+    study: 54 mm off, cost 1.6 against 4.4 at the true pose). Returns its index, or -1."""
+    information = np.empty((6, 6))
+    if not _spd_inverse(cov, information):
+        return -1
+    relative = np.empty((3, 3))
+    d = np.empty(6)
+    for k in range(count):
+        if not costs[k] - costs[best] < AMBIGUOUS_COST:  # a start that did not converge has an infinite cost
+            continue
+        for i in range(3):
+            for j in range(3):
+                relative[i, j] = rots[best, 0, i] * rots[k, 0, j] + rots[best, 1, i] * rots[k, 1, j] \
+                    + rots[best, 2, i] * rots[k, 2, j]
+        _so3_log(relative, d[:3])
+        for i in range(3):
+            d[3 + i] = ts[k, i] - ts[best, i]
+        if _quadratic(d, information) > AMBIGUOUS_DISTANCE * AMBIGUOUS_DISTANCE:
+            return k
+    return -1
+
+
+@kernel(**JIT)
 def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
              info):
     """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,
@@ -76,14 +125,6 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
     status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info, np.empty((n + 1, 10)))
     if status != OK:
         return status, 0, np.nan, np.nan, np.nan, np.nan, 0
-    status, rot, t = _closed_form(q, u, w, corners, info)
-    if status != OK:
-        return status, 0, fit_rms, np.nan, np.nan, np.nan, 0
-    cf_rot[:, :] = rot
-    cf_t[:] = t
-    r = np.empty(2 * n)
-    _residuals(q, u, w, corners, rot, t, r)
-    cf_err = _unstack_residuals(r, cf_res)
     corner_cov = np.empty((2 * n, 2 * n))
     for a in range(2 * n):
         for b in range(2 * n):
@@ -91,15 +132,66 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
             for k in range(2 * n + 2):
                 acc += jac[a, k] * line_var[k] * jac[b, k]
             corner_cov[a, b] = acc
+    # the starting poses: the closed form, or a four-ridge gauge's candidates (its system leaves a free direction)
+    start_rots = np.empty((3, 3, 3))
+    start_ts = np.empty((3, 3))
+    if n == 4:
+        count = four_ridge_starts(q, u, w, corners, start_rots, start_ts)
+        if count == 0:
+            return NO_START, 0, fit_rms, np.nan, np.nan, np.nan, 0
+    else:
+        status, rot, t = _closed_form(q, u, w, corners, info)
+        if status != OK:
+            return status, 0, fit_rms, np.nan, np.nan, np.nan, 0
+        start_rots[0] = rot
+        start_ts[0] = t
+        count = 1
+    cf_err = _start_outputs(q, u, w, corners, start_rots[0], start_ts[0], cf_rot, cf_t, cf_res)
     refined = opt[O_REFINE] > 0
     weighted = opt[O_WEIGHTED] > 0
-    max_it = int(opt[O_MAXIT]) if refined else 0
-    cov = np.empty((6, 6))
-    status, rot2, t2, r2, iterations, chi2 = _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_it, True, cov)
-    if status != OK:
-        return status, iterations, fit_rms, np.nan, cf_err, np.nan, 0
+    max_it = int(opt[O_MAXIT]) if refined or count > 1 else 0  # several starts are told apart by their minima
+    rots = np.empty((count, 3, 3))
+    ts = np.empty((count, 3))
+    rs = np.empty((count, 2 * n))
+    covs = np.empty((count, 6, 6))
+    costs = np.full(count, np.inf)
+    chi2s = np.empty(count)
+    its = np.zeros(count, dtype=np.int64)
+    best = -1
+    for k in range(count):
+        status, rot2, t2, r2, iterations, chi2 = _refine(q, u, w, corners, start_rots[k], start_ts[k], corner_cov,
+                                                         weighted, max_it, True, covs[k])
+        if status != OK:
+            if count == 1:
+                return status, iterations, fit_rms, np.nan, cf_err, np.nan, 0
+            continue
+        rots[k] = rot2
+        ts[k] = t2
+        rs[k] = r2
+        chi2s[k] = chi2
+        its[k] = iterations
+        costs[k] = chi2 if weighted else _quadratic(r2, np.eye(2 * n))
+        if best < 0 or costs[k] < costs[best]:
+            best = k
+    if best < 0:
+        return NO_CONVERGED, 0, fit_rms, np.nan, cf_err, np.nan, 0
+    if best != 0:
+        cf_err = _start_outputs(q, u, w, corners, start_rots[best], start_ts[best], cf_rot, cf_t, cf_res)
+    if weighted and refined and count > 1:
+        k = _rival(rots, ts, costs, count, best, covs[best])
+        if k >= 0:
+            d = ts[k] - ts[best]
+            info[0] = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+            info[1] = costs[best]
+            info[2] = costs[k]
+            return AMBIGUOUS, its[best], fit_rms, np.nan, cf_err, np.nan, 0
+    cov = covs[best].copy()
+    chi2 = chi2s[best]
     if refined:
-        rot, t, r = rot2, t2, r2
+        rot, t, r, iterations = rots[best].copy(), ts[best].copy(), rs[best].copy(), its[best]
+    else:
+        rot, t, r, iterations = start_rots[best].copy(), start_ts[best].copy(), np.empty(2 * n), 0
+        _residuals(q, u, w, corners, rot, t, r)
     status, err = _check(corners, rot, t, r, chi2, refined, width, length, opt, info, res_out)
     tried = 0
     if opt[O_SEARCH] > 0 and refined and (status != OK or not _position_sigma(cov[3:, 3:]) <= opt[O_SEARCHSIG]):

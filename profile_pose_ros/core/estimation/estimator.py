@@ -18,10 +18,12 @@ from ..compiled.loader import kernels
 from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
 from .hidden_face import estimate_past_a_hidden_face
-from .pipeline import check_solution, estimate_multistart
-from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_inconsistent,
-                     reason_outside, reason_poorly_determined, reason_reprojection, rejected, ros_covariance)
+from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_ambiguous,
+                     reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected,
+                     ros_covariance)
 from .solver import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
+
+REASON_NO_START = "no real starting pose for the 4-ridge gauge"
 from .stages import detect_corners, detection_reason, refine_dense, refine_pose
 
 
@@ -58,6 +60,23 @@ def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> Pos
     if sigma > options.max_position_sigma:
         return rejected(estimate, reason_poorly_determined(sigma, options))
     return estimate
+
+
+def check_solution(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, options: EstimatorOptions) -> str:
+    """Why a solution is no pose ("" if it is one): not finite, corners missing their ridges by more than the
+    bound, or corners mapped off the gauge's footprint (the compiled call's checks, for the dense solution)."""
+    if not (np.all(np.isfinite(solution.rotation)) and np.all(np.isfinite(solution.translation))):
+        return REASON_NOT_FINITE
+    error = solution.reprojection_error
+    if not error <= options.max_reprojection_error:
+        return reason_reprojection(error, gauge, options)
+    mapped = corners[:, :1] * solution.rotation[:, 0] + corners[:, 1:] * solution.rotation[:, 2] + solution.translation
+    half = np.array([gauge.width, gauge.length]) / 2 + options.footprint_margin
+    outside = np.nonzero(np.any(np.abs(mapped[:, :2]) > half, axis=1))[0]
+    if len(outside):
+        i = int(outside[0])
+        return reason_outside(i, mapped[i, 0], mapped[i, 1], gauge)
+    return ""
 
 
 def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate
@@ -98,14 +117,18 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
         return reason_reprojection(error, gauge, options)
     if status == codes.OUTSIDE_FOOTPRINT:
         return reason_outside(int(info[0]), info[1], info[2], gauge)
+    if status == codes.AMBIGUOUS:
+        return reason_ambiguous(info[0], info[1], info[2])
+    if status == codes.NO_START:
+        return f"closed form: {REASON_NO_START}"
+    if status == codes.NO_CONVERGED:
+        return "refinement: no starting pose converged"
     return f"internal status {status}"
 
 
 def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
-    """The common case in a single compiled call (corners, closed form, refinement, basin search, checks);
-    four-ridge gauges, with several starting poses, go to the staged pipeline."""
-    if gauge.n_ridges == 4:  # several starting poses (stages.four_ridge_starts)
-        return estimate_multistart(points, gauge, options)
+    """The whole estimate in a single compiled call (corners, closed form or four-ridge starts, refinement,
+    basin search, checks)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
@@ -125,7 +148,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     if status in (codes.TOO_FEW_POINTS, codes.X_NOT_INCREASING, codes.STEEP_SEGMENT, codes.WRONG_CORNER_COUNT,
                   codes.CORNER_NOT_BETWEEN, codes.CORNERS_NOT_INCREASING):
         return PoseEstimate(False, _reason(status, info, gauge, options, error), timings=timings)
-    if status in (codes.CF_RANK, codes.CF_DEGENERATE):
+    if status in (codes.CF_RANK, codes.CF_DEGENERATE, codes.NO_START):
         return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
     ok = status == codes.OK
     return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
@@ -146,7 +169,6 @@ def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
     profile = render_profile(gauge, rotation, translation)
     _estimate_in_one_call(profile, gauge, options)
     _estimate_in_one_call(np.full((10, 2), np.nan), gauge, options)  # a failure path too
-    estimate_multistart(profile, gauge, options)  # the kernels of the n = 4 starts and the basin search
     return time.perf_counter() - start
 
 

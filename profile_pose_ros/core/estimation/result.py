@@ -134,6 +134,11 @@ def reason_inconsistent(chi2: float, dof: int, gauge: Gauge, options: EstimatorO
             f"match gauge '{gauge.name}'")
 
 
+def reason_ambiguous(apart: float, best_cost: float, rival_cost: float) -> str:
+    return (f"pose ambiguous: two poses {apart * 1e3:.1f} mm apart fit the corners about equally well "
+            f"(cost {best_cost:.1f} and {rival_cost:.1f})")
+
+
 def reason_poorly_determined(sigma: float, options: EstimatorOptions) -> str:
     return (f"pose poorly determined: position std up to {sigma * 1e3:.2f} mm exceeds "
             f"{options.max_position_sigma * 1e3:.2f} mm (a near-degenerate view of the gauge)")

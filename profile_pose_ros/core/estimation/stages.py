@@ -17,7 +17,7 @@ from .corners import (REASON_CORNERS_NOT_INCREASING, REASON_X_NOT_INCREASING, Co
                       reason_too_few_points)
 from .dense import DenseOptions, DenseResult
 from .result import EstimatorOptions
-from .solver import PoseSolution, Refinement, SolverError, corner_residuals
+from .solver import PoseSolution, Refinement
 
 
 def detection_reason(status: int, info: np.ndarray, n: int, options: CornerOptions) -> str | None:
@@ -75,36 +75,6 @@ def refine_pose(gauge: Gauge, corners: np.ndarray, start: PoseSolution, corner_c
     if status != codes.OK:
         raise np.linalg.LinAlgError("Singular matrix")
     return Refinement(PoseSolution(rotation, translation, residuals.reshape(-1, 2)), covariance, int(iterations))
-
-
-def four_ridge_starts(gauge: Gauge, corners: np.ndarray) -> list[PoseSolution]:
-    """The starting poses of a four-ridge gauge, whose corners leave one free direction (search_kernel says
-    how they are found); the caller refines each. Raises SolverError when there is none."""
-    rotations, translations = np.empty((3, 3, 3)), np.empty((3, 3))
-    corners = np.ascontiguousarray(corners, dtype=np.float64)
-    found = kernels().four_ridge_starts(gauge.q, gauge.u, gauge.w, corners, rotations, translations)
-    if not found:
-        raise SolverError("no real starting pose for the 4-ridge gauge")
-    return [PoseSolution(rotations[k], translations[k], corner_residuals(gauge, corners, rotations[k], translations[k]))
-            for k in range(found)]
-
-
-def search_minima(gauge: Gauge, corners: np.ndarray, found: Refinement, corner_covariance: np.ndarray,
-                  weighted: bool, max_iterations: int) -> tuple[Refinement, int]:
-    """The lowest minimum the basin search finds around a poorly determined pose (search_kernel says how),
-    and how many starts it tried."""
-    n2 = 2 * len(corners)
-    rotation, translation, residuals, covariance = np.empty((3, 3)), np.empty(3), np.empty(n2), np.empty((6, 6))
-    improved, tried, iterations = kernels().search_minima(
-        gauge.q, gauge.u, gauge.w, np.ascontiguousarray(corners, dtype=np.float64),
-        np.ascontiguousarray(corner_covariance, dtype=np.float64), bool(weighted), int(max_iterations),
-        np.ascontiguousarray(found.solution.rotation, dtype=np.float64),
-        np.ascontiguousarray(found.solution.translation, dtype=np.float64),
-        np.ascontiguousarray(found.covariance, dtype=np.float64), rotation, translation, residuals, covariance)
-    if not improved:
-        return found, int(tried)
-    return Refinement(PoseSolution(rotation, translation, residuals.reshape(-1, 2)), covariance, int(iterations)), \
-        int(tried)
 
 
 def refine_dense(gauge: Gauge, points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
