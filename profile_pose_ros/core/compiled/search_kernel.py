@@ -14,8 +14,8 @@ import math
 import numpy as np
 
 from .codes import JIT, OK
-from .estimate_kernel import (_pose_from_x, _quadratic, _refine, _residual_covariance, _residuals, _so3_exp,
-                              _spd_inverse, _system, _matmul3)
+from .estimate_kernel import (_matmul3, _pose_from_x, _quadratic, _refine, _residual_covariance, _residuals,
+                              _so3_exp, _spd_inverse, _system)
 from .kernel import kernel
 
 SEARCH_SCALES = (3.0, 8.0, 20.0)  # hop lengths along a weak mode, in its standard deviations
