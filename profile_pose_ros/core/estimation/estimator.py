@@ -22,9 +22,9 @@ from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position
                      reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected,
                      ros_covariance)
 from .solver import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
+from .stages import detect_corners, detection_reason, refine_dense, refine_pose
 
 REASON_NO_START = "no real starting pose for the 4-ridge gauge"
-from .stages import detect_corners, detection_reason, refine_dense, refine_pose
 
 
 def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | None = None,
