@@ -1,6 +1,6 @@
 """What the estimator takes and returns: its options, its result, and the words of its refusals.
 
-Below stages.py, pipeline.py and estimator.py, which all build on it.
+Below stages.py, hidden_face.py and estimator.py, which all build on it.
 """
 from __future__ import annotations
 
