@@ -115,9 +115,10 @@ def test_basin_search_leaves_no_wrong_minimum_on_random_gauges(n):
     assert wrong == 0
 
 
-def test_poorly_determined_poses_are_rejected_and_the_rest_have_an_honest_covariance():
+def test_poorly_determined_poses_are_rejected_and_every_covariance_is_honest():
     """Random n = 5 gauges include near-degenerate views; there the linearised covariance understates the
-    error, so such poses are rejected (with the reason), and the NEES of the others averages ~6."""
+    error, so theirs comes from the unscented transform, and the NEES of the gated and of the kept poses
+    both average near 6; the gate rejects the poorly determined ones with the reason."""
     from profile_pose_ros.tools.study import pose_nees
 
     rng = np.random.default_rng(7)
@@ -132,8 +133,8 @@ def test_poorly_determined_poses_are_rejected_and_the_rest_have_an_honest_covari
             assert ungated.ok and (gated.ok or "poorly determined" in gated.reason), gated.reason
             (kept if gated.ok else dropped).append(pose_nees(ungated, rotation, t))
     assert 0 < len(dropped) < 0.2 * 200
-    assert 3.0 < np.mean(kept) < 12.0  # measured 6.6
-    assert np.mean(dropped) > 2 * np.mean(kept)  # measured 24: their covariance was not honest
+    assert 3.0 < np.mean(kept) < 12.0  # measured 6.2
+    assert 3.0 < np.mean(dropped) < 12.0  # measured 8.4 (24 with the linearised covariance)
 
 
 def test_two_equally_good_poses_centimetres_apart_are_rejected_as_ambiguous():
