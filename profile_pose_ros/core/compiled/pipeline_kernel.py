@@ -75,8 +75,12 @@ def _start_outputs(q, u, w, corners, rot, t, cf_rot, cf_t, cf_res):
 
 
 @kernel(**JIT)
-def _so3_log(m, out):
-    """Rotation vector of a rotation matrix (angle < pi), as model.rotation.so3_log."""
+def _rotation_between(a, b, out):
+    """delta with b = a exp([delta]x) (angle < pi): model.rotation.so3_log of a^T b."""
+    m = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            m[i, j] = a[0, i] * b[0, j] + a[1, i] * b[1, j] + a[2, i] * b[2, j]
     cos_angle = min(max((m[0, 0] + m[1, 1] + m[2, 2] - 1.0) / 2.0, -1.0), 1.0)
     angle = math.acos(cos_angle)
     scale = 0.5 if angle < 1e-7 else angle / (2.0 * math.sin(angle))
@@ -94,16 +98,11 @@ def _rival(rots, ts, costs, count, best, cov):
     information = np.empty((6, 6))
     if not _spd_inverse(cov, information):
         return -1
-    relative = np.empty((3, 3))
     d = np.empty(6)
     for k in range(count):
         if not costs[k] - costs[best] < AMBIGUOUS_COST:  # a start that did not converge has an infinite cost
             continue
-        for i in range(3):
-            for j in range(3):
-                relative[i, j] = rots[best, 0, i] * rots[k, 0, j] + rots[best, 1, i] * rots[k, 1, j] \
-                    + rots[best, 2, i] * rots[k, 2, j]
-        _so3_log(relative, d[:3])
+        _rotation_between(rots[best], rots[k], d[:3])
         for i in range(3):
             d[3 + i] = ts[k, i] - ts[best, i]
         if _quadratic(d, information) > AMBIGUOUS_DISTANCE * AMBIGUOUS_DISTANCE:
@@ -126,7 +125,6 @@ def _unscented_covariance(q, u, w, corners, rot, t, corner_cov, weighted, max_it
     if not _cholesky(corner_cov, low):
         return
     moved = np.empty((n, 2))
-    relative = np.empty((3, 3))
     d = np.empty(6)
     second = np.zeros((6, 6))
     no_cov = np.empty((0, 0))
@@ -140,10 +138,7 @@ def _unscented_covariance(q, u, w, corners, rot, t, corner_cov, weighted, max_it
                                                       True, no_cov)  # converged: a short run spreads too little
             if status != OK:
                 return
-            for a in range(3):
-                for b in range(3):
-                    relative[a, b] = rot[0, a] * rot2[0, b] + rot[1, a] * rot2[1, b] + rot[2, a] * rot2[2, b]
-            _so3_log(relative, d[:3])  # R2 = R exp([delta_F]x)
+            _rotation_between(rot, rot2, d[:3])  # R2 = R exp([delta_F]x)
             for a in range(3):
                 d[3 + a] = t2[a] - t[a]
             for a in range(6):
