@@ -1,7 +1,8 @@
 """The estimator in one compiled call: corners, closed form (a four-ridge gauge's several starting poses,
 each refined, the lowest minimum kept unless a rival fits about as well), refinement, the basin search
-when the pose is poorly determined or its checks refuse it, and the checks. A profile costs one dispatch
-from Python, the poorly determined ones too.
+when the pose is poorly determined or its checks refuse it, the checks, and for a poorly determined pose
+its covariance by the unscented transform. A profile costs one dispatch from Python, the poorly
+determined ones too.
 """
 from __future__ import annotations
 
@@ -116,9 +117,8 @@ def _unscented_covariance(q, u, w, corners, rot, t, corner_cov, weighted, max_it
     to the 2m sigma points of their covariance (m = 2n; +-sqrt(m) times each column of its Cholesky factor),
     the pose refined again from each, and the second moment of those poses about the estimate. Along the
     long curved valley of such a pose the corners -> pose map is far from linear, and the linearised
-    covariance understates the error (NEES 14-18 on average on random gauges, 12-15 % beyond chi-square's
-    99 % quantile; this one 6-7 and 3-4 %, docs/estimator.md). cov is left as it is if any sigma point's
-    refinement fails."""
+    covariance understates the error (docs/estimator.md, Covariance, has the measurements). cov is left as
+    it is if any sigma point's refinement fails."""
     n = corners.shape[0]
     m = 2 * n
     low = np.empty((m, m))
