@@ -111,9 +111,10 @@ def test_every_profile_is_stamped_with_its_trigger_or_dropped(rig_factory) -> No
     rig.run(200.0, 200)
     c = rig.link.counters
     # every profile published with its trigger's time, or dropped because the clock map could not vouch for
-    # it: never one with a stamp it could not vouch for. How many are dropped depends on the runner's load
-    # (the simulated MCU answers PINGs from this process): 0 on a quiet machine, 167 of 200 in one CI run.
-    assert (c.published + c.unconfirmed, c.dropped, c.bad_frames, c.unsynced) == (200, 0, 0, 0)
+    # it (or its trigger's line came too late): never one with a stamp it could not vouch for, none lost.
+    # How many are dropped depends on the runner's load (the simulated MCU answers PINGs from this process):
+    # 0 on a quiet machine, 167 of 200 in one CI run, 1 late line in another.
+    assert (c.published + c.unconfirmed + c.late_lines, c.dropped, c.bad_frames, c.unsynced) == (200, 0, 0, 0)
     assert c.published > 0
     # paired with the right trigger: the profile is the one rendered at that trigger's pose (it moves)
     assert rig.check_published_against_truth(stamp_tolerance=1e-3) == c.published
