@@ -18,6 +18,7 @@ EXECUTABLES = {
     "bag_player": "profile_pose_ros.nodes.bag_player:main",
     "profile_pose_bag": "profile_pose_ros.tools.bag_cli:main",
     "profile_pose_bringup": "profile_pose_ros.tools.bringup:main",
+    "profile_pose_calibrate": "profile_pose_ros.nodes.calibrate:main",  # commissioning: where gauge and profiler sit
     "profile_pose": "profile_pose_ros.tools.cli:main",  # the research, benchmark and commissioning tools
 }
 

@@ -12,7 +12,7 @@ import profile_pose_ros
 
 PACKAGE = Path(profile_pose_ros.__file__).resolve().parent
 # core/'s rooms, bottom-up, as core/__init__ lists them: a room may import itself and those before it
-CORE_ROOMS = ("model", "timing", "compiled", "wire", "estimation", "control", "design")
+CORE_ROOMS = ("model", "timing", "compiled", "wire", "estimation", "control", "design", "commissioning")
 # the package's folders, bottom-up
 LAYERS = ("core", "devices", "bags", "sim", "nodes", "tools")
 

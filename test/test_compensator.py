@@ -88,8 +88,37 @@ def test_the_input_shaper_keeps_the_arms_resonance_out_of_the_corrections() -> N
 
 
 def compensator(ros, **params) -> PdCompensatorNode:
+    """The compensator with its loop closed from the first pose: these tests are about the law and its
+    inputs; the first-motion check, which needs an arm that answers, is test_calibrate.py's."""
+    params = {"first_motion_check": False, **params}
     return ros.add(PdCompensatorNode(context=ros.context,
                                      parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]))
+
+
+def test_before_the_first_motion_check_nothing_but_zeros_leaves(ros) -> None:
+    """Check on (the default), a reference 1 mm away, fresh poses, and no arm answering (no robot_state):
+    the loop is not closed, whatever the error; only zeros go out, for the bridge to arm on."""
+    node = compensator(ros, first_motion_check=True)
+    talker = ros.node("talker")
+    poses = talker.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
+    reference = talker.create_publisher(PoseStamped, "reference_pose", 10)
+    corrections = []
+    talker.create_subscription(TwistStamped, "correction", corrections.append, 100)
+    translation = np.array([0.0, 0.0, 0.45])
+
+    @paced
+    def publish_pose() -> None:
+        pose = pose_stamped(LOOKING_DOWN, translation, Time(nanoseconds=time.time_ns()).to_msg(), "gauge")
+        poses.publish(pose_with_covariance(pose, np.diag([1e-10] * 3 + [1e-8] * 3)))
+
+    assert ros.spin_until(lambda: node.last_measured is not None, 5.0, action=publish_pose)
+    reference.publish(pose_stamped(LOOKING_DOWN, translation + [1e-3, 0, 0], talker.get_clock().now().to_msg(),
+                                   "gauge"))
+    assert ros.spin_until(lambda: node.reference is not None, 5.0, action=publish_pose)
+    count = len(corrections)
+    assert ros.spin_until(lambda: len(corrections) > count + 50, 5.0, action=publish_pose)
+    assert all(not any((m.twist.linear.x, m.twist.linear.y, m.twist.linear.z)) for m in corrections)
+    assert node._first_motion_state() == "waiting for the arm"
 
 
 @pytest.mark.parametrize("law", ["pd", "modal"])

@@ -8,6 +8,7 @@ Rooms, each importing only those listed before it:
     estimation  profile -> pose
     control     compensators, limits, safety
     design      gauge design and bounds
+    commissioning  where the gauge and the profiler sit (hand-eye), the first-motion check
 
     from profile_pose_ros.core import Gauge, render_profile, estimate_pose
 """

@@ -9,7 +9,8 @@ sends the previous period's correction). A correction older than `max_age` (by i
 trigger time), stamped more than `max_future` ahead, in another frame than base_frame, or received more
 than max_age ago on this node's monotonic clock moves nothing; a period without a new correction sends
 zero, never the last one again. A fault or a lost session disarms until ~/start; STOP goes out on every
-shutdown path.
+shutdown path. In `mode: calibration` the same rules apply to profile_pose_calibrate's open-loop moves on
+`~/calibration_move` instead, and `correction` moves nothing.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from ..core.wire import motoplus_protocol as mp
 from ..core.timing.freshness import describe_age, stamp_age_ok
 from ..core.timing.latency_window import LatencyWindow
 from ..core.wire.pose_cdr import CdrFormatError, decode_twist_cdr, encode_pose_cdr, encode_twist_cdr
-from ..core.model.rotation import so3_exp
+from ..core.model.transform import rotation_from_controller_angles
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, RefusalCounter, diagnostic_array
 from .direct_input import DirectInput, ServedDirectly, spin
@@ -66,19 +67,32 @@ PARAMETERS = [
           "thread may miss the controller's next period (an answer later than 0.75 periods moves nothing).", 0.0, 0.7),
     Param("frame", "base", "Cartesian frame of the increments: base, robot, tool or user.", read_only=True),
     Param("base_frame", "base", "frame_id of robot_state."),
+    Param("mode", "loop", "loop: corrections from the compensator (`correction`). calibration: open-loop moves "
+          "from profile_pose_calibrate (`~/calibration_move`, the same TwistStamped velocities and checks) and "
+          "none from `correction`, the offset bound narrowed to calibration_envelope.", read_only=True),
+    Param("calibration_envelope", [0.005, 0.005, 0.005, 0.04, 0.04, 0.04], "In calibration mode, the bound on the "
+          "total offset from the start pose per axis (m, rad), instead of max_offset.", read_only=True),
     Param("arm_on_start", False, "Arm (send HELLO) as soon as connected, without ~/start.", read_only=True),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
     *REALTIME_PARAMETERS,
 ]
 
 
+MODES = {"loop": "correction", "calibration": "~/calibration_move"}  # mode -> the one topic that moves the arm
+
+
 def limits_from(v: dict) -> SessionLimits:
     if v["frame"] not in FRAMES:
         raise ValueError(f"frame must be one of {', '.join(FRAMES)}, not {v['frame']!r}")
-    for name in ("max_step", "max_offset"):
+    if v["mode"] not in MODES:
+        raise ValueError(f"mode must be one of {', '.join(MODES)}, not {v['mode']!r}")
+    for name in ("max_step", "max_offset", "calibration_envelope"):
         if len(v[name]) != 6 or min(v[name]) <= 0:
             raise ValueError(f"{name} needs six positive values (x y z rx ry rz)")
-    return SessionLimits(v["period"], tuple(v["max_step"]), tuple(v["max_offset"]), v["watchdog"], FRAMES[v["frame"]])
+    # The loop's bound, or the calibration's: its turns are larger than any the loop should make. Either way
+    # the controller's own bound still holds (a HELLO cannot widen it).
+    offset = v["calibration_envelope"] if v["mode"] == "calibration" else v["max_offset"]
+    return SessionLimits(v["period"], tuple(v["max_step"]), tuple(offset), v["watchdog"], FRAMES[v["frame"]])
 
 
 class MotoPlusBridgeNode(RefusalCounter, Node):
@@ -109,9 +123,9 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.direct_input = DirectInput(None, self.context, guard=self._sent_guard)
         if local is not None:
-            local.take(self.resolve_topic_name("correction"), self._on_correction)
+            local.take(self.resolve_topic_name(MODES[v["mode"]]), self._on_correction)
         else:
-            corrections = self.create_subscription(TwistStamped, "correction", self._on_correction, LOOP_INPUT_QOS,
+            corrections = self.create_subscription(TwistStamped, MODES[v["mode"]], self._on_correction, LOOP_INPUT_QOS,
                                                    callback_group=direct, raw=True)  # read by core/wire/pose_cdr.py
             self.direct_input.add(corrections, self._on_correction)
         self.create_service(Trigger, "~/start", self._on_start)
@@ -128,7 +142,8 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.client.start()
-        logger.info(f"robot controller tcp://{v['host']}:{v['port']}, period {v['period'] * 1e3:.1f} ms; "
+        logger.info(f"robot controller tcp://{v['host']}:{v['port']}, period {v['period'] * 1e3:.1f} ms, "
+                    f"{v['mode']} mode (moved by {self.resolve_topic_name(MODES[v['mode']])}); "
                     f"{'arming' if v['arm_on_start'] else 'disarmed until ~/start'}")
 
     # ---------------------------------------------------------------- corrections
@@ -211,8 +226,9 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
             self.increment_pub.publish(encode_twist_cdr(mp.units_to_metres(units), stamp_ns, self.values["base_frame"]))
 
     def _on_state(self, state: mp.State, host_time: float) -> None:
+        """robot_state: the tool's pose in the base frame as the controller reports it (its Rx Ry Rz angles)."""
         pose = np.array(mp.units_to_metres(state.pose))
-        self.state_pub.publish(encode_pose_cdr(so3_exp(pose[3:]), pose[:3], int(host_time * 1e9),
+        self.state_pub.publish(encode_pose_cdr(rotation_from_controller_angles(pose[3:]), pose[:3], int(host_time * 1e9),
                                                self.values["base_frame"]))
 
     def pump(self, timeout_sec: float = 0.0) -> int:

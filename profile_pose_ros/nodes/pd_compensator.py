@@ -28,11 +28,12 @@ from ..core.control.compensator import (AxisKalman, Gains, InputShaper, Mounting
                                         pose_vector_in_base, zvd_impulses)
 from ..core.timing.freshness import describe_age, fresh_until, stamp_age_ok
 from ..core.timing.latency_window import LatencyWindow
+from ..core.commissioning.first_motion import FirstMotionCheck, ProbeDesign
 from ..core.control.modal_control import ModalController, ModalDesign
 from ..core.wire.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
 from ..core.model.rotation import rotation_from_quaternion_xyzw
 from ..core.estimation.result import position_sigma
-from .diagnostics import OK, WARN, RefusalCounter, diagnostic_array
+from .diagnostics import ERROR, OK, WARN, RefusalCounter, diagnostic_array
 from .direct_input import DirectInput, ServedDirectly, spin
 from .local_topics import LOOP_INPUT_QOS, LocalTopics, LoopOutput
 from .messages import rotation_translation
@@ -42,6 +43,7 @@ from .run import run_node
 from .scene_messages import TF_STATIC_QOS, static_transform
 
 NODE_NAME = "pd_compensator"
+ROBOT_LIVE_S = 0.5  # robot_state heard this recently: the bridge is armed and the controller answering
 
 PARAMETERS = [
     Param("kp", [4.0, 4.0, 4.0, 5.0, 5.0, 5.0], "Proportional gain per axis x y z rx ry rz (1/s): velocity "
@@ -50,8 +52,19 @@ PARAMETERS = [
           "per unit of the arm's filtered velocity, subtracted."),
     Param("max_speed", [0.05, 0.05, 0.05, 0.2, 0.2, 0.2], "Correction speed limit per axis (m/s, rad/s)."),
     Param("gauge_in_base", [0.0] * 6, "Pose of the gauge frame G in the robot base frame: x y z (m), rotation "
-          "vector (rad). Corrections act at the profiler origin: set the controller's tool to the profiler "
-          "frame. Also published on /tf_static (base_frame -> gauge_frame).", read_only=True),
+          "vector (rad), as profile_pose_calibrate measures it. Also published on /tf_static (base_frame -> "
+          "gauge_frame).", read_only=True),
+    Param("profiler_in_tool", [0.0] * 6, "Pose of the profiler frame F on the controller's tool (x y z m, rotation "
+          "vector rad), as profile_pose_calibrate measures it: corrections are sent for the tool, which the "
+          "controller turns about its own origin. Zero: the tool is the profiler frame.", read_only=True),
+    Param("first_motion_check", True, "Before the loop first closes (a reference, poses, and the bridge armed: "
+          "robot_state flowing), probe each axis open loop and compare the measured response with what "
+          "gauge_in_base and profiler_in_tool predict; on a sign flip, an axis swap or a rotation error the "
+          "loop stays open (no corrections; the bridge stops) with an ERROR diagnostic.", read_only=True),
+    Param("first_motion_amplitude", [5e-4, 5e-4, 5e-4, 5e-3, 5e-3, 5e-3], "The probes' size per axis (m, rad).",
+          read_only=True),
+    Param("first_motion_max_rotation_error", 0.05, "The largest rotation between the probes and the measured "
+          "response that the check passes (rad).", 0.001, 0.5, read_only=True),
     Param("acceleration_psd", [20.0, 0.5, 20.0, 2.0, 2.0, 2.0], "Kalman filter process noise per axis "
           "((m/s^2)^2/Hz): larger follows faster motion, smaller averages more noise.", read_only=True),
     Param("shaper_frequency", 10.0, "The arm's resonance (Hz, natural frequency) that a ZVD input shaper keeps "
@@ -152,9 +165,17 @@ class PdCompensatorNode(RefusalCounter, Node):
         super().__init__(NODE_NAME, **kwargs)
         v = self.values = declare_all(self, PARAMETERS)
         self.gains = gains_from(v)
-        if len(v["gauge_in_base"]) != 6 or len(v["acceleration_psd"]) != 6:
-            raise ValueError("gauge_in_base and acceleration_psd need six values")
-        self.mounting = Mounting(tuple(v["gauge_in_base"]))
+        for name in ("gauge_in_base", "profiler_in_tool", "acceleration_psd", "first_motion_amplitude"):
+            if len(v[name]) != 6:
+                raise ValueError(f"{name} needs six values")
+        if min(v["first_motion_amplitude"]) <= 0:
+            raise ValueError("first_motion_amplitude needs six positive values")
+        self.mounting = Mounting(tuple(v["gauge_in_base"]), tuple(v["profiler_in_tool"]))
+        self.first_motion = (FirstMotionCheck(ProbeDesign(tuple(v["first_motion_amplitude"]),
+                                                          max_rotation_error=v["first_motion_max_rotation_error"]))
+                             if v["first_motion_check"] else None)
+        self.robot_heard = -math.inf  # time.monotonic() of the newest robot_state: the bridge is armed
+        self.last_rotation = np.eye(3)  # the newest pose's rotation (F in G): the tool's lever arm
         self.modal = modal_controller_from(v)
         # The PD law's filter and shaper; the modal law has its own filter and needs no shaper.
         self.filter = AxisKalman(np.array(v["acceleration_psd"])) if self.modal is None else None
@@ -187,6 +208,7 @@ class PdCompensatorNode(RefusalCounter, Node):
                                                 LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
             self.direct_input.add(pose_sub, self._on_pose)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
+        self.create_subscription(PoseStamped, "robot_state", self._on_robot_state, 10)
         self.latency = LatencyWindow("trigger_to_correction_ms")  # the pose's stamp -> its correction published
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
 
@@ -253,9 +275,38 @@ class PdCompensatorNode(RefusalCounter, Node):
                 return
             self.reference = reference
 
+    def _on_robot_state(self, _msg: PoseStamped) -> None:
+        self.robot_heard = time.monotonic()
+
     def _on_pose(self, serialized: bytes) -> None:
         with self._lock:
             self._use_pose(serialized)
+
+    @property
+    def loop_refused(self) -> bool:
+        """The first-motion check failed: this compensator moves nothing, ever (a restart checks again)."""
+        return self.first_motion is not None and bool(self.first_motion.verdict)
+
+    def _probe(self, z: np.ndarray, stamp_ns: int) -> None:
+        """Before the loop closes: the first-motion check's probes, once the arm answers (robot_state within
+        ROBOT_LIVE_S); zeros before, so that the bridge can arm on a live input."""
+        check = self.first_motion
+        if time.monotonic() - self.robot_heard > ROBOT_LIVE_S:
+            check.reset()
+            self._publish(np.zeros(6), stamp_ns)
+            return
+        self._publish(check.velocity(time.monotonic(), z), stamp_ns)
+        if check.done:
+            if check.verdict:
+                self.get_logger().error(check.verdict)
+            else:
+                self.get_logger().info("first-motion check passed; closing the loop")
+            self.get_logger().info(f"first-motion response (column k: the measured motion per unit probe on axis k, "
+                                   f"x y z rx ry rz; the identity when the calibration is right):\n"
+                                   f"{np.array2string(check.response, precision=3, suppress_small=True)}")
+            for state in (self.filter, self.modal, self.shaper):
+                if state is not None:
+                    state.reset()
 
     def _use_pose(self, serialized: bytes) -> None:
         received = time.monotonic()
@@ -307,7 +358,14 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.last_pose_stamp = stamp
         self.pose_fresh_until = fresh_until(received, age, v["max_pose_age"])
         self.last_measured = z
+        self.last_rotation = rotation
         self.poses += 1
+        if self.first_motion is not None and not self.first_motion.done:
+            if self.reference is not None:
+                self._probe(z, pose_stamp_ns)
+            return  # no reference: the watchdog keeps the output at zero
+        if self.loop_refused:
+            return
         if self.modal is not None:
             self.modal.update(stamp, z, variance, self.reference)
             if self.reference is None:
@@ -329,6 +387,8 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.corrections += 1
 
     def _publish(self, velocity: np.ndarray, stamp_ns: int) -> None:
+        """`velocity`: of the profiler origin; sent as the tool's."""
+        velocity = self.mounting.tool_velocity(velocity, self.last_rotation)
         serialized = encode_twist_cdr(velocity, stamp_ns, self.values["base_frame"])
         self.correction_out.publish(serialized)
         self.correction_out.hand_over(serialized)  # composed: to the bridge, in this thread
@@ -341,10 +401,13 @@ class PdCompensatorNode(RefusalCounter, Node):
 
     def _check_staleness(self) -> float:
         now = time.monotonic()
+        if self.loop_refused:  # silent: the bridge's input timeout stops the session
+            return now + 1.0
         if self.reference is not None and now <= self.pose_fresh_until:
             return self.pose_fresh_until + 1e-4
         # The next fresh pose starts the filter again, not from old motion; nor does old shaped motion
         # come back after a stale spell.
+        # (a first-motion probe runs on: it is timed, and a stale spell only thins its records)
         for state in (self.filter, self.modal, self.shaper):
             if state is not None:
                 state.reset()
@@ -357,14 +420,18 @@ class PdCompensatorNode(RefusalCounter, Node):
 
     def _publish_diagnostics(self) -> None:
         age = time.time() - self.last_pose_stamp if self.last_pose_stamp else float("inf")
-        if self.reference is None:
+        if self.loop_refused:
+            level, message = ERROR, self.first_motion.verdict
+        elif self.reference is None:
             level, message = WARN, "no reference_pose yet: correction zero"
+        elif self.first_motion is not None and not self.first_motion.done:
+            level, message = WARN, "first-motion check: probing (the loop is open)"
         elif time.monotonic() > self.pose_fresh_until:
             level, message = WARN, f"pose stale ({age:.3f} s old): correction zero"
         else:
             level, message = OK, "correcting"
         values = {"poses": self.poses, "corrections": self.corrections, "zero_corrections": self.stale_zeros,
-                  "has_reference": self.reference is not None,
+                  "has_reference": self.reference is not None, "first_motion": self._first_motion_state(),
                   "pose_age_ms": age * 1e3, "error_um": [round(float(e) * 1e6, 1) for e in self.last_error[:3]],
                   "control_law": self.values["control_law"], "kp": list(self.gains.kp), "kd": list(self.gains.kd),
                   **{f"refused_{why}": count for why, count in self.refused.items()},
@@ -373,6 +440,19 @@ class PdCompensatorNode(RefusalCounter, Node):
             values["poses_within_a_period"] = self.modal.skipped  # not used: one pose a period drives the law
         self.diagnostics_pub.publish(diagnostic_array(self, "compensator", "pd_compensator",
                                                       level, message, values))
+
+
+    def _first_motion_state(self) -> str:
+        check = self.first_motion
+        if check is None:
+            return "off"
+        if check.done:
+            return "refused" if check.verdict else "passed"
+        if self.reference is None:
+            return "waiting for a reference"
+        if time.monotonic() - self.robot_heard > ROBOT_LIVE_S:
+            return "waiting for the arm"
+        return f"probing {check.probing}" + (f" (restarted {check.restarts}x)" if check.restarts else "")
 
 
 def main(args=None) -> int:

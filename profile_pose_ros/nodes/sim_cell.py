@@ -80,8 +80,12 @@ PARAMETERS = [
           read_only=True),
     Param("arm_delay", 0.01061, "Command-to-motion delay (s): one 4 ms clock plus the paper's mean profile transfer "
           "time.", 0.0, 0.1, read_only=True),
-    Param("gauge_in_base", [0.0] * 6, "Pose of the gauge in the robot base frame (x y z m, rotation vector rad).",
-          read_only=True),
+    Param("gauge_in_base", [0.0] * 6, "The truth: pose of the gauge in the robot base frame (x y z m, rotation "
+          "vector rad). The loop's nodes never see it (profile_pose_calibrate measures it).", read_only=True),
+    Param("profiler_in_flange", [0.0] * 6, "The truth: pose of the profiler frame F on the robot's flange (x y z m, "
+          "rotation vector rad).", read_only=True),
+    Param("tool_in_flange", [0.0] * 6, "The tool the controller was told (its tool file): increments move this "
+          "frame, and robot_state reports its pose.", read_only=True),
     Param("program_offset", [0.0] * 6, "The robot program's target offset from the start pose (m, rad); "
           "setting it is a step command."),
     Param("controller_max_step", DEFAULT_LIMITS_SI["max_step"], "The controller's own per-period clamp (m, rad): a "
@@ -141,7 +145,8 @@ class SimCellNode(Node):
         self.robot = None
         if v["robot_enabled"]:
             arm = Arm(ArmModel(delay_s=v["arm_delay"]))
-            motion = ArmMotion(motion.rotation, motion.translation, arm, np.array(v["gauge_in_base"], float))
+            motion = ArmMotion(motion.rotation, motion.translation, arm, v["gauge_in_base"],
+                               v["profiler_in_flange"], v["tool_in_flange"])
         self.cell = SimCell(self.gauge, motion, profiler, mcu, SensorNoise(), DEFAULT_PROFILER,
                             on_truth=self._publish_truth, seed=v["seed"] + 2)
         if v["robot_enabled"]:
@@ -153,7 +158,7 @@ class SimCellNode(Node):
                                               v["controller_max_speed"], v["controller_max_watchdog"])
             self.robot = RobotController(arm, on_period, v["host"], v["robot_port"], ticks,
                                          ControllerFaults(), seed=v["seed"] + 3, on_applied=self._publish_applied,
-                                         limits=limits)
+                                         limits=limits, pose_of=motion.controller_pose)
         self._apply_faults(v)
         self.truth_pub = self.create_publisher(PoseStamped, "sim/ground_truth", 100)
         self.applied_pub = self.create_publisher(TwistStamped, "sim/robot_increment", 100)

@@ -8,6 +8,7 @@ from typing import Protocol
 import numpy as np
 
 from ..core.model.rotation import so3_exp
+from ..core.model.transform import Transform, controller_angles
 
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 
@@ -69,14 +70,34 @@ def steps_from_lists(times: list[float], axes: list[str], sizes: list[float]) ->
 
 
 class ArmMotion:
-    """The profiler carried by the simulated arm: the nominal pose moved by the arm's offsets, which are
-    in the robot base frame (gauge_in_base gives the base's axes in G) and act at the profiler origin."""
+    """The profiler carried by the simulated arm, in a cell whose geometry the loop's nodes do not know.
 
-    def __init__(self, rotation: np.ndarray, translation: np.ndarray, arm, gauge_in_base: np.ndarray) -> None:
-        self.rotation, self.translation, self.arm = rotation, translation, arm
-        self.r_gb = so3_exp(np.asarray(gauge_in_base[3:], dtype=float)).T
+    The truth: the gauge's place in the robot base frame and the profiler's mount on the flange. The
+    controller knows only the tool it was told (tool_in_flange, the nominal one) and moves that: the arm's
+    offsets are translations of the tool origin in base axes and turns about it. The robot program's start
+    pose puts the profiler at the nominal viewing pose (rotation, translation: F in G), as a commissioning
+    engineer jogs the arm until the gauge is in view.
+    """
+
+    def __init__(self, rotation: np.ndarray, translation: np.ndarray, arm, gauge_in_base,
+                 profiler_in_flange=(0.0,) * 6, tool_in_flange=(0.0,) * 6) -> None:
+        self.arm = arm
+        base_gauge = Transform.from_vector(gauge_in_base)
+        flange_profiler, flange_tool = Transform.from_vector(profiler_in_flange), Transform.from_vector(tool_in_flange)
+        self.gauge_base = base_gauge.inverse()
+        self.tool_profiler = flange_tool.inverse() @ flange_profiler
+        self.tool_start = base_gauge @ Transform(rotation, translation) @ self.tool_profiler.inverse()
+
+    def tool_pose(self, offset: np.ndarray) -> Transform:
+        """The tool in the base frame with the arm at `offset` from the start pose."""
+        return Transform(so3_exp(offset[3:]) @ self.tool_start.rotation, self.tool_start.translation + offset[:3])
 
     def pose_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        offset = self.arm.position
-        turn = self.r_gb @ so3_exp(offset[3:]) @ self.r_gb.T
-        return turn @ self.rotation, self.translation + self.r_gb @ offset[:3]
+        profiler = self.gauge_base @ self.tool_pose(self.arm.position) @ self.tool_profiler
+        return profiler.rotation, profiler.translation
+
+    def controller_pose(self, offset: np.ndarray) -> np.ndarray:
+        """What the controller reports (mpGetCartPos): the tool's pose in the base frame, x y z (m) and its
+        Rx Ry Rz angles (rad)."""
+        tool = self.tool_pose(offset)
+        return np.concatenate([tool.translation, controller_angles(tool.rotation)])

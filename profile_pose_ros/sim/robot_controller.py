@@ -33,7 +33,7 @@ class ControllerFaults:
 
 
 # The simulated controller's own limits (SI), unless sim_cell's controller_max_* parameters say otherwise
-DEFAULT_LIMITS_SI = {"max_step": [2e-4] * 3 + [1e-3] * 3, "max_offset": [5e-3] * 3 + [2e-2] * 3,
+DEFAULT_LIMITS_SI = {"max_step": [2e-4] * 3 + [1e-3] * 3, "max_offset": [5e-3] * 3 + [4e-2] * 3,
                      "max_speed": [0.05] * 3 + [0.25] * 3, "max_watchdog_s": 2.0}
 DEFAULT_LIMITS = ControllerLimits.from_si(**DEFAULT_LIMITS_SI)
 
@@ -51,10 +51,13 @@ class RobotController:
     def __init__(self, arm: Arm, on_period: Callable[[int], None] | None = None, host: str = "127.0.0.1",
                  port: int = 0, period_ticks: int = 3, faults: ControllerFaults | None = None,
                  seed: int = 3, on_applied: Callable[[float, tuple[int, ...]], None] | None = None,
-                 limits: ControllerLimits = DEFAULT_LIMITS) -> None:
+                 limits: ControllerLimits = DEFAULT_LIMITS,
+                 pose_of: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         """on_applied(wall time, increment in units): every armed period, the step the application committed
-        (spread over the period's cycles; zeros when it held): the witness the safety checks judge by."""
+        (spread over the period's cycles; zeros when it held): the witness the safety checks judge by.
+        pose_of(arm offset): the tool pose mpGetCartPos reports (x y z m, Rx Ry Rz rad); None: the offset."""
         self.arm = arm
+        self.pose_of = pose_of or (lambda offset: offset)
         self.on_period = on_period
         self.on_applied = on_applied
         self.period_ticks = period_ticks
@@ -153,7 +156,7 @@ class RobotController:
             with self._lock:
                 self.arm.command = self.program + np.array(mp.units_to_metres(self.moved))
                 self.arm.advance(TICK_S)
-                pose = mp.metres_to_units(self.arm.position)
+                pose = mp.metres_to_units(self.pose_of(self.arm.position))
             self.moved += self.app.tick(pose)
             tick += 1
             if tick % self.period_ticks == 0:

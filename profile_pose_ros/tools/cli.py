@@ -14,6 +14,8 @@ import sys
 # subcommand -> (module under profile_pose_ros.tools, what it is for)
 TOOLS = {
     "experiment": ("experiment", "the closed-loop step experiment (paper IV-C, Table IV) on the simulated cell"),
+    "calibration-study": ("calibration_study", "profile_pose_calibrate on sim_cells with hidden placements, "
+                          "against the truth"),
     "identify": ("identify", "the arm's mode per axis, for the modal compensator (sim or a bag)"),
     "gauge": ("gauge_cli", "check, design and export gauges (paper III-D)"),
     "profiler-check": ("profiler_check", "sim_cell + profiler_driver + pose_estimator as processes, checked"),

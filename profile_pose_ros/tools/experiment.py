@@ -24,7 +24,9 @@ from ..nodes.pd_compensator import PARAMETERS as COMPENSATOR_PARAMETERS
 from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
 from ..nodes.sim_cell import PARAMETERS as SIM_PARAMETERS
 from ..bags import bag_info
+from ..core.model.transform import Transform
 from .config_files import add_control_law_option
+from .calibration_study import calibrated, hidden_placement
 from .graph import Graph, free_port
 from .report import run_dir, table, write_json
 
@@ -142,13 +144,17 @@ class Experiment:
     def __init__(self, graph: Graph, rate_hz: float, noise_std: float, seed: int = 0,
                  compensator: dict | None = None, refine_model: str = "dense", profile_rate_hz: float | None = None,
                  bag: Path | None = None, gauge_file: str = "", estimator: dict | None = None,
-                 realtime_priority: int = 0, composed: bool = False, bridge: dict | None = None) -> None:
+                 realtime_priority: int = 0, composed: bool = False, bridge: dict | None = None,
+                 sim_truth: dict | None = None, calibrate: Path | None = None, first_motion: bool = False) -> None:
         """rate_hz: the controller's (83.333 or 250), which also triggers the profiler unless
         profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there;
         gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one);
         estimator, compensator: parameters for those nodes beyond the defaults; realtime_priority: the four
         loop nodes' (nodes/process_tuning.py; the simulator and the recorder stay under the normal scheduler);
-        composed: the four loop nodes in one cell_container process instead of four."""
+        composed: the four loop nodes in one cell_container process instead of four; sim_truth: sim_cell's
+        hidden placement (gauge_in_base, profiler_in_flange); calibrate: measure it first with
+        profile_pose_calibrate (its files go there) and give the compensator the result; first_motion: the
+        compensator's first-motion check before the loop closes (off for the tools that measure other things)."""
         from geometry_msgs.msg import PoseStamped
 
         self.graph, self.rate_hz = graph, rate_hz
@@ -173,7 +179,8 @@ class Experiment:
         if profile_rate_hz:
             sim.update(profiler_trigger="clock", trigger_rate=profile_rate_hz, mcu_baudrate=2_000_000)
             driver.update(baudrate=2_000_000)
-        graph.start("sim_cell", {**sim, **gauge})
+        graph.start("sim_cell", {**sim, **gauge, **(sim_truth or {})})
+        compensator = {**(compensator or {}), "first_motion_check": first_motion}
         nodes = {
             "profiler_driver": driver,
             # every pose counts in the step metrics, late or not: no max_profile_age here (the soak sets it)
@@ -181,14 +188,28 @@ class Experiment:
                                **loop},
             "pd_compensator": {"diagnostics_period": 0.5, "control_period": period,
                                "loop_delay": loop_delay(period, bridge_params.get("answer_wait", _BRIDGE_DEFAULTS["answer_wait"])),
-                               **(compensator or {}), **loop},
+                               **compensator, **loop},
             "motoplus_bridge": {"port": robot_port, "period": period, "diagnostics_period": 0.5,
                                 "max_step": self.max_step.tolist(), **bridge_params, **loop}}
         if composed:
+            if calibrate is not None:
+                raise ValueError("calibrate with the loop's nodes as processes, not composed")
             graph.start_composed(nodes)
         else:
-            for executable, params in nodes.items():
-                graph.start(executable, params)
+            for executable in ("profiler_driver", "pose_estimator"):
+                graph.start(executable, nodes[executable])
+            if calibrate is not None:
+                mounting = calibrated(graph, nodes["motoplus_bridge"], calibrate)
+                compensator.update(mounting)
+                nodes["pd_compensator"].update(mounting)
+                print(f"  calibrated (profile_pose_calibrate, files in {calibrate}): gauge_in_base "
+                      f"{np.round(mounting['gauge_in_base'], 5).tolist()}, profiler_in_tool "
+                      f"{np.round(mounting['profiler_in_tool'], 5).tolist()}", flush=True)
+            for executable in ("pd_compensator", "motoplus_bridge"):
+                graph.start(executable, nodes[executable])
+        self.first_motion = first_motion
+        # the base frame's axes in G (the loop's own idea of them): steps and responses are along base axes
+        self.gauge_to_base = Transform.from_vector(compensator.get("gauge_in_base", [0.0] * 6)).rotation
         node = graph.node
         self.poses: list[tuple[float, np.ndarray]] = []
         self.truth: list[tuple[float, np.ndarray]] = []
@@ -242,10 +263,33 @@ class Experiment:
         self.bridge(arm=True)
         self.wait(settle_s)
 
+    def await_first_motion_check(self, timeout: float = 60.0) -> str:
+        """Armed, with the check on: wait for its verdict; raises when the loop was refused."""
+        if not self.first_motion:
+            return "off"
+        resent = [time.monotonic()]
+
+        def done() -> bool:
+            state = self.value("pd_compensator", "first_motion")
+            # the reference sent may have gone before a node started late (after a calibration) matched
+            if state == "waiting for a reference" and time.monotonic() - resent[0] > 0.5:
+                self.reference(np.zeros(3))
+                resent[0] = time.monotonic()
+            return state in ("passed", "refused")
+
+        if not self.graph.spin_until(done, timeout):
+            raise RuntimeError(f"the first-motion check did not finish in {timeout:g} s "
+                               f"({self.value('pd_compensator', 'first_motion')})")
+        verdict = self.value("pd_compensator", "first_motion")
+        if verdict == "refused":
+            raise RuntimeError(f"the loop was refused: {self.graph.diagnostics_message('pd_compensator')}")
+        return verdict
+
     def reference(self, offset: np.ndarray) -> None:
+        """The reference at home + offset, offset along the robot's base axes (m)."""
         rotation, position = self.home
-        self.reference_pub.publish(pose_stamped(rotation, position + offset, self.graph.node.get_clock().now().to_msg(),
-                                                "gauge"))
+        self.reference_pub.publish(pose_stamped(rotation, position + self.gauge_to_base.T @ offset,
+                                                self.graph.node.get_clock().now().to_msg(), "gauge"))
 
     def set_program(self, offset: np.ndarray) -> None:
         self.graph.set_parameters("sim_cell", {"program_offset": [float(v) for v in offset] + [0.0, 0.0, 0.0]})
@@ -293,7 +337,7 @@ class Experiment:
                 continue
             before = (t > start - BEFORE_S) & (t < start)
             during = (t >= start) & (t < start + RECORD_S)
-            y = (p[during] - p[before].mean(axis=0)) @ unit
+            y = (p[during] - p[before].mean(axis=0)) @ (self.gauge_to_base.T @ unit)  # along the base axis
             out[name] = {"t": (t[during] - start).tolist(), "y": y.tolist(), **step_metrics(t[during] - start, y, size)}
         return out
 
@@ -460,15 +504,21 @@ def _save(fig, path) -> str:
 def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise: float, out, seed: int = 0,
         compensator: dict | None = None, modes: tuple[str, ...] = ("open", "closed"),
         refine_model: str = "dense", bag: Path | None = None, gauge_file: str = "", composed: bool = False,
-        profile_rate_hz: float | None = None, bridge: dict | None = None) -> dict:
+        profile_rate_hz: float | None = None, bridge: dict | None = None, sim_truth: dict | None = None,
+        calibrate: bool = False, first_motion: bool = True) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_experiment")
     runs: list[dict] = []
+    first_motion_verdict = "off"
     try:
         exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model, bag=bag, gauge_file=gauge_file,
-                         composed=composed, profile_rate_hz=profile_rate_hz, bridge=bridge)
+                         composed=composed, profile_rate_hz=profile_rate_hz, bridge=bridge, sim_truth=sim_truth,
+                         calibrate=out / "calibration" if calibrate else None, first_motion=first_motion)
         exp.start()
         for mode in modes:
             exp.bridge(arm=(mode == "closed"))
+            if mode == "closed":
+                first_motion_verdict = exp.await_first_motion_check()
+                print(f"  first-motion check: {first_motion_verdict}", flush=True)
             exp.reference(np.zeros(3))
             exp.wait(1.0)
             for axis in axes:
@@ -486,7 +536,8 @@ def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise
         diagnostics, health = exp.diagnostics, loop_health(exp)
     finally:
         graph.close()
-    return {"rate_hz": rate_hz, "runs": runs, "noise_floor_um": floor, "diagnostics": diagnostics, "loop": health}
+    return {"rate_hz": rate_hz, "runs": runs, "noise_floor_um": floor, "diagnostics": diagnostics, "loop": health,
+            "first_motion": first_motion_verdict, "sim_truth": sim_truth or {}}
 
 
 def recorded_step(exp: Experiment, closed: bool, direction: np.ndarray, size: float) -> dict:
@@ -554,6 +605,14 @@ def main(argv=None) -> int:
                         "goes to <run>/bag, MCAP with zstd chunks)")
     parser.add_argument("--composed", action="store_true",
                         help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
+    parser.add_argument("--hidden-placement", type=int, metavar="SEED", help="sim_cell's gauge and profiler placed "
+                        "where the loop does not know (random, from SEED, in profile_pose calibration-study's ranges)")
+    parser.add_argument("--sim-truth", type=float, nargs=12, metavar="V", help="sim_cell's gauge_in_base and "
+                        "profiler_in_flange (6 + 6 numbers) instead of a random hidden placement")
+    parser.add_argument("--calibrate", action="store_true", help="measure the placement first with "
+                        "profile_pose_calibrate and run the loop on the result (else the compensator's own values)")
+    parser.add_argument("--no-first-motion-check", action="store_true",
+                        help="close the loop without the compensator's first-motion check")
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
     out = run_dir(args.out, "experiment")
@@ -567,6 +626,16 @@ def main(argv=None) -> int:
     if args.modal_frequency_scale != 1.0:
         nominal = compensator.get("modal_frequency", _COMPENSATOR_DEFAULTS["modal_frequency"])
         compensator["modal_frequency"] = [args.modal_frequency_scale * f for f in nominal]
+    sim_truth = None
+    if args.hidden_placement is not None:
+        gauge_in_base, profiler_in_flange = hidden_placement(np.random.default_rng(args.hidden_placement))
+        sim_truth = {"gauge_in_base": gauge_in_base.tolist(), "profiler_in_flange": profiler_in_flange.tolist()}
+    if args.sim_truth:
+        sim_truth = {"gauge_in_base": args.sim_truth[:6], "profiler_in_flange": args.sim_truth[6:]}
+    if sim_truth:
+        print(f"hidden placement (sim_cell's truth, not given to the loop): gauge_in_base "
+              f"{np.round(sim_truth['gauge_in_base'], 4).tolist()}, profiler_in_flange "
+              f"{np.round(sim_truth['profiler_in_flange'], 4).tolist()}", flush=True)
     profiles = f", profiles at {args.profile_rate:g} Hz" if args.profile_rate else ""
     print(f"Table IV protocol at {args.rate:g} Hz{profiles}: {len(args.axes)} axes x {len(args.sizes)} sizes x "
           f"{args.repeats} repeats, open and closed loop ({args.control_law} law); gauge {args.gauge or 'config/gauge_paper_n5.yaml'}, "
@@ -575,7 +644,8 @@ def main(argv=None) -> int:
     result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=compensator,
                  modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge,
                  composed=args.composed, profile_rate_hz=args.profile_rate,
-                 bridge={"answer_wait": args.answer_wait} if args.answer_wait is not None else None)
+                 bridge={"answer_wait": args.answer_wait} if args.answer_wait is not None else None,
+                 sim_truth=sim_truth, calibrate=args.calibrate, first_motion=not args.no_first_motion_check)
     if len(args.modes) < 2:  # nothing to compare: the runs, and how fast they got there
         speed_text, result["speed"] = speed_table(result["runs"], args.axes, args.sizes)
         print(speed_text)

@@ -124,6 +124,7 @@ class Graph:
         self._served_here = ServedDirectly()
         self._parameter_clients: dict = {}
         self.diagnostics: dict[str, dict] = {}  # status name -> its values, the newest of each node
+        self.messages: dict[str, str] = {}  # status name -> its message, the newest
         self.diagnostics_listeners: list = []  # callables(status name, values): every report, not just the newest
         from diagnostic_msgs.msg import DiagnosticArray
 
@@ -132,6 +133,7 @@ class Graph:
     def _on_diagnostics(self, msg) -> None:
         for status in msg.status:
             values = self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
+            self.messages[status.name] = status.message
             for listener in self.diagnostics_listeners:
                 listener(status.name, values)
 
@@ -154,6 +156,10 @@ class Graph:
             if self.is_from(name, node):
                 return values.get(key, default)
         return default
+
+    def diagnostics_message(self, node: str) -> str:
+        """The message of the newest /diagnostics status of `node` of this graph's namespace."""
+        return next((m for name, m in self.messages.items() if self.is_from(name, node)), "")
 
     def cpu_seconds(self) -> dict[str, float]:
         """CPU time (user + system) each node process has used so far, and this client's own under

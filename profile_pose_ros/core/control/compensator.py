@@ -46,9 +46,11 @@ class Gains:
 
 @dataclass(frozen=True)
 class Mounting:
-    """Where things are: the gauge in the robot base frame (rotation vector and translation)."""
+    """Where things are: the gauge in the robot base frame, and the profiler on the controller's tool (each a
+    translation and a rotation vector), as profile_pose_calibrate measures them."""
 
     gauge_in_base: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # x y z (m), rx ry rz (rad)
+    profiler_in_tool: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     # computed once: every pose needs them
     # and read-only, since every caller shares them
@@ -59,6 +61,21 @@ class Mounting:
     @cached_property
     def translation(self) -> np.ndarray:
         return _read_only(np.asarray(self.gauge_in_base[:3], dtype=float))
+
+    @cached_property
+    def _lever_in_profiler(self) -> np.ndarray:
+        """The tool origin -> the profiler origin, in the profiler's frame (R_TP^T t_TP)."""
+        return _read_only(so3_exp(np.asarray(self.profiler_in_tool[3:], dtype=float)).T
+                          @ np.asarray(self.profiler_in_tool[:3], dtype=float))
+
+    def tool_velocity(self, velocity: np.ndarray, profiler_rotation: np.ndarray) -> np.ndarray:
+        """The tool's velocity (base axes) that moves the profiler origin by `velocity`: the controller turns
+        the tool about its own origin, which carries the profiler along its lever arm. profiler_rotation: F
+        in G, the newest pose's."""
+        if not any(self.profiler_in_tool[:3]) or not np.any(velocity[3:]):
+            return velocity
+        lever = self.rotation @ profiler_rotation @ self._lever_in_profiler  # base coordinates
+        return np.concatenate([velocity[:3] - np.cross(velocity[3:], lever), velocity[3:]])
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:
