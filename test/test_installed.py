@@ -21,7 +21,7 @@ from profile_pose_ros.tools.cli import TOOLS as CLI_TOOLS
 
 # argparse tools answer --help; nodes start, show up in the graph, and stop on SIGINT with exit status 0
 # (the research and commissioning tools are subcommands of profile_pose)
-TOOLS = [["profile_pose_bag"], ["profile_pose_bringup"], ["profile_pose"]] + [["profile_pose", name] for name in CLI_TOOLS]
+TOOLS = [["profile_pose_bag"], ["profile_pose_bringup"], ["profile_pose_calibrate"], ["profile_pose"]] + [["profile_pose", name] for name in CLI_TOOLS]
 NODES = {"pose_estimator": ["pose_estimator"], "profiler_driver": ["profiler_driver"],
          "pd_compensator": ["pd_compensator"], "motoplus_bridge": ["motoplus_bridge"], "sim_cell": ["sim_cell"],
          "cell_container": ["profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge"],

@@ -50,7 +50,7 @@ def discovery_range(requested: str | None, environ: dict) -> str:
 
 
 class Bringup:
-    def __init__(self, out: Path, params_file: Path, namespace: str = "", hardware: bool = False,
+    def __init__(self, out: Path, params_file: Path | list[Path], namespace: str = "", hardware: bool = False,
                  record: bool = False, domain_id: int | None = None, composed: bool = False,
                  frame_prefix: str = "") -> None:
         self.out, self.hardware, self.record, self.composed = out, hardware, record, composed
@@ -128,7 +128,9 @@ class Bringup:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--hardware", action="store_true", help="no sim_cell: the nodes talk to the real devices")
-    parser.add_argument("--params-file", help="default: config/cell.yaml (simulated), config/hardware.yaml")
+    parser.add_argument("--params-file", action="append", help="default: config/cell.yaml (simulated), "
+                        "config/hardware.yaml; again for more files, each overriding the ones before (e.g. the cell's "
+                        "file, then profile_pose_calibrate's calibration.yaml)")
     parser.add_argument("--namespace", default="", help="e.g. cell2: every node and topic under /cell2")
     parser.add_argument("--frame-prefix", default="", help="e.g. cell2/: frames cell2/profiler, cell2/gauge, "
                         "cell2/base (overrides the parameter file's frame names)")
@@ -143,8 +145,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
 
-    params_file = Path(args.params_file) if args.params_file else config_path(
-        "hardware.yaml" if args.hardware else "cell.yaml")
+    params_file = [Path(f) for f in args.params_file] if args.params_file else [config_path(
+        "hardware.yaml" if args.hardware else "cell.yaml")]
     domain_id = args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID", "0"))
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = discovery = discovery_range(args.discovery_range, os.environ)
     out = run_dir(args.out, f"bringup{'-' + args.namespace.strip('/') if args.namespace else ''}")
@@ -154,7 +156,7 @@ def main(argv=None) -> int:
     code = 0
     try:
         cell.start()
-        print(f"starting {'the real cell' if args.hardware else 'the simulated cell'} with {params_file} "
+        print(f"starting {'the real cell' if args.hardware else 'the simulated cell'} with {', '.join(map(str, params_file))} "
               f"(domain {domain_id}, discovery {discovery}{', namespace /' + args.namespace.strip('/') if args.namespace else ''}); "
               f"logs in {out}", flush=True)
         ready_s = cell.wait_ready(args.ready_timeout)

@@ -99,13 +99,15 @@ class Graph:
     last, so that the bridge stops (and sends STOP) first."""
 
     def __init__(self, log_dir: Path, domain_id: int | None = None, client_name: str = "graph_client",
-                 namespace: str = "", params_file: Path | None = None) -> None:
+                 namespace: str = "", params_file: Path | list[Path] | None = None) -> None:
+        """params_file: one parameter file or several (a later one overrides an earlier one, e.g. a cell's
+        file, then its calibration) that every node is started with; None: each node's `-p` values only."""
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
 
         self.namespace = namespace.strip("/")
-        self.params_file = params_file
+        self.params_files = [params_file] if isinstance(params_file, (str, Path)) else list(params_file or [])
         self._launcher: dict[str, list[str]] = {}
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -178,10 +180,10 @@ class Graph:
         if executable in ESTIMATING:
             prepare_kernel()
         command = self._ros_command(executable)
-        if self.params_file is None:
+        if not self.params_files:
             command += ros_params(params or {})
         else:  # a file's node block beats `-p`; a later file beats an earlier one
-            command += ["--params-file", str(self.params_file)]
+            command += self._params_file_arguments()
             if params:
                 overrides = self.log_dir / f"{name}.overrides.yaml"
                 overrides.write_text(yaml.safe_dump({f"/**/{executable}": {"ros__parameters": dict(params)}}))
@@ -196,8 +198,7 @@ class Graph:
         the driver's profiler port and the bridge's controller port)."""
         prepare_kernel()
         command = self._ros_command(name)
-        if self.params_file is not None:
-            command += ["--params-file", str(self.params_file)]
+        command += self._params_file_arguments()
         blocks = {f"/**/{node}": {"ros__parameters": dict(params)} for node, params in node_params.items()}
         (self.log_dir / f"{name}.params.yaml").write_text(yaml.safe_dump(blocks, sort_keys=False))
         command += ["--params-file", str(self.log_dir / f"{name}.params.yaml")]
@@ -205,6 +206,9 @@ class Graph:
             f.write(yaml.safe_dump({node: {"ros__parameters": dict(params)} for node, params in node_params.items()},
                                    sort_keys=False))
         return self._record_and_launch(name, command)
+
+    def _params_file_arguments(self) -> list[str]:
+        return [argument for path in self.params_files for argument in ("--params-file", str(path))]
 
     def _ros_command(self, executable: str) -> list[str]:
         """How to run `executable` (launcher()), up to its ROS arguments: the namespace, if any."""
