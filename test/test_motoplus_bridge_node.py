@@ -161,3 +161,45 @@ def test_one_rogue_correction_moves_the_arm_one_period_at_most(ros, controller, 
         assert moving or bridge.client.counters.lost_increments > 0, (
             "the fresh correction moved nothing: the test would not see a repeat", bridge.refused,
             vars(bridge.client.counters))
+
+
+def test_in_calibration_mode_only_the_calibrations_moves_move_the_arm(ros, controller) -> None:
+    """mode: calibration (profile_pose_calibrate's open-loop moves): a compensator left running can neither arm
+    the bridge nor move the arm, and the session's offset bound is the calibration envelope."""
+    bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
+        Parameter("port", value=controller), Parameter("mode", value="calibration"), Parameter("max_age", value=0.1),
+        Parameter("watchdog", value=2.0), Parameter("input_timeout", value=5.0)]))
+    assert bridge.limits.max_offset == tuple(bridge.values["calibration_envelope"])
+    client = ros.node("operator")
+    corrections = client.create_publisher(TwistStamped, "correction", 10)
+    moves = client.create_publisher(TwistStamped, "motoplus_bridge/calibration_move", 10)
+    states: list[PoseStamped] = []
+    client.create_subscription(PoseStamped, "robot_state", states.append, 100)
+    start = client.create_client(Trigger, "/motoplus_bridge/start")
+
+    @paced
+    def send(publisher, velocity: float) -> None:
+        msg = TwistStamped()
+        msg.header.stamp = Time(nanoseconds=time.time_ns()).to_msg()
+        msg.header.frame_id = "base"
+        msg.twist.linear.x = velocity
+        publisher.publish(msg)
+
+    assert start.wait_for_service(timeout_sec=5.0)
+    ros.spin_until(lambda: False, 0.3, action=lambda: send(corrections, 0.0))
+    refused = start.call_async(Trigger.Request())  # a live compensator is no live input here
+    assert ros.spin_until(lambda: refused.done(), 10.0, action=lambda: send(corrections, 0.0))
+    assert not refused.result().success and not bridge.client.armed
+    assert ros.spin_until(lambda: bridge.count_publishers(moves.topic_name) > 0, 5.0)
+    ros.spin_until(lambda: False, 0.3, action=lambda: send(moves, 0.0))
+    future = start.call_async(Trigger.Request())
+    assert ros.spin_until(lambda: future.done() and bridge.client.armed, 10.0, action=lambda: send(moves, 0.0))
+
+    x = lambda: states[-1].pose.position.x if states else 0.0  # noqa: E731
+    assert ros.spin_until(lambda: bool(states), 10.0, action=lambda: send(moves, 0.0))
+    start_x = x()
+    assert ros.spin_until(lambda: x() > start_x + 2e-4, 10.0, action=lambda: send(moves, 0.01))
+    ros.spin_until(lambda: False, 1.0, action=lambda: send(moves, 0.0))  # the arm rings down
+    held = x()
+    ros.spin_until(lambda: False, 0.5, action=lambda: send(corrections, 0.01))  # fresh, and on the wrong topic
+    assert abs(x() - held) < 2e-6 and bridge.client.armed, ([round(s.pose.position.x * 1e6, 1) for s in states[-45:]])

@@ -72,7 +72,7 @@ class CalibrationNode(Node):
         """Each controller period, while armed: the period's move."""
         self.states += 1
         self.armed = True
-        if self.procedure.done or self.procedure.failed:
+        if self.procedure.done:  # (a failed station's sequence still goes back to the start pose first)
             self._publish(np.zeros(6))
             return
         rotation, translation = rotation_translation(msg.pose)
@@ -130,13 +130,14 @@ def run(procedure: Procedure, args, context=None) -> tuple[Calibration | None, s
             spin_until(executor, lambda: False, 0.5)
         else:
             return None, f"the bridge did not arm: {message}"
-        spin_until(executor, lambda: procedure.done or procedure.failed is not None, procedure.motion_s + 30.0)
-        call(executor, node.stop_client)
+        spin_until(executor, lambda: procedure.done, procedure.motion_s + 30.0)
         if procedure.failed:
             return None, procedure.failed
         if not procedure.done:
             return None, f"the sequence did not finish ({len(procedure.recorded)} stations recorded; robot_state stopped?)"
     finally:
+        if node.armed:  # on every way out: the bridge disarms (STOP) rather than waiting for its input timeout
+            call(executor, node.stop_client)
         executor.shutdown()
         node.destroy_node()
     try:

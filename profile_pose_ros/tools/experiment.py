@@ -208,8 +208,9 @@ class Experiment:
             for executable in ("pd_compensator", "motoplus_bridge"):
                 graph.start(executable, nodes[executable])
         self.first_motion = first_motion
-        # the base frame's axes in G (the loop's own idea of them): steps and responses are along base axes
-        self.gauge_to_base = Transform.from_vector(compensator.get("gauge_in_base", [0.0] * 6)).rotation
+        # R_BG as the loop knows it (its gauge_in_base): steps and responses are along the robot's base axes,
+        # R_BG^T u in the gauge frame the poses are in
+        self.gauge_rotation_in_base = Transform.from_vector(compensator.get("gauge_in_base", [0.0] * 6)).rotation
         node = graph.node
         self.poses: list[tuple[float, np.ndarray]] = []
         self.truth: list[tuple[float, np.ndarray]] = []
@@ -288,7 +289,7 @@ class Experiment:
     def reference(self, offset: np.ndarray) -> None:
         """The reference at home + offset, offset along the robot's base axes (m)."""
         rotation, position = self.home
-        self.reference_pub.publish(pose_stamped(rotation, position + self.gauge_to_base.T @ offset,
+        self.reference_pub.publish(pose_stamped(rotation, position + self.gauge_rotation_in_base.T @ offset,
                                                 self.graph.node.get_clock().now().to_msg(), "gauge"))
 
     def set_program(self, offset: np.ndarray) -> None:
@@ -337,7 +338,7 @@ class Experiment:
                 continue
             before = (t > start - BEFORE_S) & (t < start)
             during = (t >= start) & (t < start + RECORD_S)
-            y = (p[during] - p[before].mean(axis=0)) @ (self.gauge_to_base.T @ unit)  # along the base axis
+            y = (p[during] - p[before].mean(axis=0)) @ (self.gauge_rotation_in_base.T @ unit)
             out[name] = {"t": (t[during] - start).tolist(), "y": y.tolist(), **step_metrics(t[during] - start, y, size)}
         return out
 
