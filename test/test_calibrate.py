@@ -3,34 +3,56 @@ measures a placement the nodes were not told, and the first-motion check keeps a
 judged by what the controller applied (sim/robot_increment), not by the loop's own word."""
 from __future__ import annotations
 
+import json
+import os
+import subprocess
 import time
 
 import numpy as np
 import pytest
+import yaml
 from geometry_msgs.msg import TwistStamped
 
-from profile_pose_ros.core.commissioning.procedure import Timing
 from profile_pose_ros.core.model.transform import Transform, difference
-from profile_pose_ros.tools.calibration_study import calibration_on, start_cell
+from profile_pose_ros.nodes.pd_compensator import PARAMETERS as COMPENSATOR_PARAMETERS
+from profile_pose_ros.tools import processes
+from profile_pose_ros.tools.calibration_study import start_cell
 from profile_pose_ros.tools.experiment import Experiment
 from profile_pose_ros.tools.graph import Graph
 
 GAUGE = "config/gauge_designed_n6.yaml"
 
 
-def test_calibrate_measures_a_hidden_placement_through_the_nodes(tmp_path) -> None:
+def test_profile_pose_calibrate_measures_a_hidden_placement_and_writes_its_files(tmp_path) -> None:
+    """The command as an engineer runs it, against sim_cell, the driver, the estimator and the bridge in
+    calibration mode: without an operator it moves nothing; with --yes it measures what the nodes were not
+    told, and its parameter file is one pd_compensator takes."""
     gauge_in_base = np.array([0.03, -0.02, 0.01, 0.05, -0.04, 0.4])
     profiler_in_flange = np.array([0.02, 0.025, -0.015, -0.06, 0.03, 0.05])
     graph = Graph(tmp_path / "logs")
+    command = processes.executable("profile_pose_calibrate", "profile_pose_ros.nodes.calibrate") + [
+        "--out", str(tmp_path / "calibration"), "--move-time", "0.5", "--settle", "0.5", "--dwell", "0.6", "--wait", "60"]
+    env = dict(os.environ, ROS_DOMAIN_ID=str(graph.domain_id))
     try:
         bridge = start_cell(graph, gauge_in_base, profiler_in_flange, GAUGE)
-        result, procedure, problem = calibration_on(graph, bridge, Timing(move_s=0.5, settle_s=0.5, dwell_s=0.6))
+        graph.start("motoplus_bridge", {**bridge, "mode": "calibration"})
+        unconfirmed = subprocess.run(command, env=env, stdin=subprocess.DEVNULL, capture_output=True, timeout=120)
+        assert unconfirmed.returncode == 1 and b"no operator to confirm" in unconfirmed.stderr, unconfirmed.stderr
+        graph.forget("motoplus_bridge")
+        assert graph.spin_until(lambda: graph.reported("motoplus_bridge"), 10.0)
+        assert graph.diagnostic("motoplus_bridge", "connections") == "0"  # it connects to arm: never armed, never moved
+        done = subprocess.run(command + ["--yes"], env=env, stdin=subprocess.DEVNULL, capture_output=True, timeout=180)
     finally:
         graph.close()
-    assert not problem and result is not None, problem
-    assert len(procedure.recorded) == len(procedure.offsets)
-    mount = difference(Transform.from_vector(profiler_in_flange), result.profiler_in_tool)
-    place = difference(Transform.from_vector(gauge_in_base), result.gauge_in_base)
+    assert done.returncode == 0, done.stderr.decode(errors="replace")
+    report = json.loads((tmp_path / "calibration" / "calibration.json").read_text())
+    assert report["refused"] is None and len(report["stations"]) == 13 and report["robot_motion_s"] <= 60.0
+    assert (tmp_path / "calibration" / "residuals.png").stat().st_size > 0
+    values = yaml.safe_load((tmp_path / "calibration" / "calibration.yaml").read_text())["pd_compensator"]["ros__parameters"]
+    assert set(values) == {"gauge_in_base", "profiler_in_tool"}
+    assert set(values) <= {p.name for p in COMPENSATOR_PARAMETERS}
+    mount = difference(Transform.from_vector(profiler_in_flange), Transform.from_vector(values["profiler_in_tool"]))
+    place = difference(Transform.from_vector(gauge_in_base), Transform.from_vector(values["gauge_in_base"]))
     assert np.linalg.norm(mount[3:]) < 2e-3 and np.linalg.norm(mount[:3]) < 2e-4, mount
     assert np.linalg.norm(place[3:]) < 1e-3, place
 
