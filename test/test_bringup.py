@@ -12,6 +12,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import PointCloud2
 
+from conftest import ROOT
 from profile_pose_ros.tools import processes
 
 SUFFIX = f"_{os.getpid()}"  # names of this run only: a leftover of another run cannot confuse the checks
@@ -89,9 +90,11 @@ def test_two_namespaced_cells_side_by_side_without_cross_talk(ros, tmp_path) -> 
 
 
 def test_a_node_that_cannot_start_is_reported_and_everything_stops(ros, tmp_path) -> None:
+    """The cell's file, then one that overrides it (as a calibration's file is given after the cell's)."""
     params = tmp_path / "bad.yaml"
     params.write_text("/**/pose_estimator:\n  ros__parameters:\n    gauge_file: /no/such/gauge.yaml\n")
-    process = bringup(ros.domain_id, tmp_path, "--params-file", str(params), "--namespace", "broken_cell" + SUFFIX)
+    process = bringup(ros.domain_id, tmp_path, "--params-file", str(ROOT / "config" / "cell.yaml"),
+                      "--params-file", str(params), "--namespace", "broken_cell" + SUFFIX)
     output = process.communicate(timeout=120)[0]
     assert process.returncode == 1, output
     assert "pose_estimator exited" in output
