@@ -15,7 +15,7 @@ that moved, a robot that slipped, a pose that was wrong): a calibration must nev
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import optimize, stats
@@ -38,7 +38,8 @@ class Station:
 
 @dataclass(frozen=True)
 class Bounds:
-    """What a calibration must reach to be used (standard deviations) and how unlikely its residuals may be."""
+    """What a calibration must reach to be used (standard deviations), how unlikely its residuals may be, and
+    the noise of the controller's reported pose it assumes."""
 
     rotation_sigma: float = 1e-3  # rad, each axis of either rotation
     translation_sigma: float = 1e-4  # m, each axis of the profiler's place on the tool
@@ -58,7 +59,6 @@ class Calibration:
     station_chi2: np.ndarray  # per station (6 dof each)
     station_residuals: np.ndarray  # per station: x y z (m) and rotation vector (rad) in G, measured - predicted
     refused: str | None = None  # why this calibration must not be used; None: it may
-    notes: list[str] = field(default_factory=list)
 
     @property
     def sigma(self) -> np.ndarray:
@@ -94,8 +94,7 @@ def solve(stations: list[Station], bounds: Bounds = Bounds()) -> Calibration:
         x, y = _perturbed(x0, p[:6]), _perturbed(y0, p[6:])
         return np.concatenate([w @ _residual(s, x, y) for s, w in zip(stations, weights)])
 
-    fit = optimize.least_squares(residuals, np.zeros(12), method="lm", x_scale=np.r_[[1e-3] * 3, [1e-3] * 3,
-                                                                                       [1e-3] * 3, [1e-3] * 3])
+    fit = optimize.least_squares(residuals, np.zeros(12), method="lm", x_scale=1e-3)  # mm and mrad corrections
     x, y = _perturbed(x0, fit.x[:6]), _perturbed(y0, fit.x[6:])
     information = fit.jac.T @ fit.jac
     if np.linalg.cond(information) > 1e14:
