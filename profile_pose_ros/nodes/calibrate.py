@@ -34,6 +34,8 @@ from .messages import rotation_translation
 NODE_NAME = "profile_pose_calibrate"
 ARMING_RATE_HZ = 100.0  # zero moves while arming: the bridge arms only on a live input
 START_ATTEMPTS = 5
+SESSION_LOST_S = 1.0  # no robot_state for this long: the bridge ended the session (its input timeout is 0.5 s)
+MAX_REARMS = 3  # sessions lost mid-sequence and re-armed before the calibration gives up
 
 
 class CalibrationNode(Node):
@@ -43,6 +45,7 @@ class CalibrationNode(Node):
         self.poses = 0
         self.states = 0
         self.armed = False
+        self.last_state = -float("inf")  # time.monotonic() of the newest robot_state
         self.move_pub = self.create_publisher(TwistStamped, "motoplus_bridge/calibration_move", 10)
         self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose, 100)
         self.create_subscription(PoseStamped, "robot_state", self._on_state, 100)
@@ -72,6 +75,7 @@ class CalibrationNode(Node):
         """Each controller period, while armed: the period's move."""
         self.states += 1
         self.armed = True
+        self.last_state = time.monotonic()
         if self.procedure.done:  # (a failed station's sequence still goes back to the start pose first)
             self._publish(np.zeros(6))
             return
@@ -93,6 +97,18 @@ def call(executor, client, timeout: float = 5.0) -> tuple[bool, str]:
     if not spin_until(executor, future.done, timeout):
         return False, f"{client.srv_name} did not answer"
     return future.result().success, future.result().message
+
+
+def arm(executor, node: CalibrationNode) -> tuple[bool, str]:
+    """~/start until the first robot_state: the bridge arms on a live input, and the node's first zero
+    moves may still be in flight."""
+    message = ""
+    for _ in range(START_ATTEMPTS):
+        ok, message = call(executor, node.start_client)
+        if ok and spin_until(executor, lambda: node.armed, 10.0):
+            return True, message
+        spin_until(executor, lambda: False, 0.5)
+    return False, message
 
 
 def confirmed(procedure: Procedure, assume_yes: bool) -> bool:
@@ -123,14 +139,24 @@ def run(procedure: Procedure, args, context=None) -> tuple[Calibration | None, s
         if not spin_until(executor, lambda: node.move_pub.get_subscription_count() > 0, 10.0):
             return None, (f"nobody listens on {node.move_pub.topic_name}: is motoplus_bridge running with "
                           "mode: calibration?")
-        for _ in range(START_ATTEMPTS):  # the bridge arms on a live input: its first zero moves may still be in flight
-            ok, message = call(executor, node.start_client)
-            if ok and spin_until(executor, lambda: node.armed, 10.0):
-                break
-            spin_until(executor, lambda: False, 0.5)
-        else:
+        ok, message = arm(executor, node)
+        if not ok:
             return None, f"the bridge did not arm: {message}"
-        spin_until(executor, lambda: procedure.done, procedure.motion_s + 30.0)
+        deadline = time.monotonic() + procedure.motion_s + 60.0
+        for rearm in range(MAX_REARMS + 1):
+            spin_until(executor, lambda: procedure.done or time.monotonic() - node.last_state > SESSION_LOST_S,
+                       deadline - time.monotonic())
+            if procedure.done or time.monotonic() > deadline:
+                break
+            # The session ended mid-sequence (this process stalled past the bridge's input timeout, or the
+            # controller stopped): arm again, as the operator agreed to the whole sequence; the procedure
+            # resumes from where the controller says the tool is. A controller that is not ready refuses.
+            print(f"the bridge ended the session at station {procedure.index}; arming again", file=sys.stderr)
+            node.armed = False
+            ok, message = arm(executor, node) if rearm < MAX_REARMS else (False, f"lost {MAX_REARMS + 1} times")
+            if not ok:
+                return None, f"the session ended mid-sequence and could not be resumed: {message}"
+            procedure.rehome(time.monotonic())
         if procedure.failed:
             return None, procedure.failed
         if not procedure.done:

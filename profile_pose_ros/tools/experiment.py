@@ -155,7 +155,7 @@ class Experiment:
         hidden placement (gauge_in_base, profiler_in_flange); calibrate: measure it first with
         profile_pose_calibrate (its files go there) and give the compensator the result; first_motion: the
         compensator's first-motion check before the loop closes (off for the tools that measure other things)."""
-        from geometry_msgs.msg import PoseStamped
+        from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 
         self.graph, self.rate_hz = graph, rate_hz
         period = 0.012 if rate_hz < 200 else 0.004
@@ -213,8 +213,9 @@ class Experiment:
         self.gauge_rotation_in_base = Transform.from_vector(compensator.get("gauge_in_base", [0.0] * 6)).rotation
         node = graph.node
         self.poses: list[tuple[float, np.ndarray]] = []
+        self.position_covariances: list[np.ndarray] = []  # each pose's, beside self.poses
         self.truth: list[tuple[float, np.ndarray]] = []
-        self._streams = [graph.subscribe_fast(PoseStamped, "pose", self._on_pose),
+        self._streams = [graph.subscribe_fast(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose),
                          graph.subscribe_fast(PoseStamped, "sim/ground_truth",
                                               lambda m: self.truth.append(self._sample(m)))]
         self.reference_pub = node.create_publisher(PoseStamped, "reference_pose", 10)
@@ -223,8 +224,10 @@ class Experiment:
         self._services: dict = {}
 
     def _on_pose(self, msg) -> None:
-        self.poses.append(self._sample(msg))
-        self.last_pose = msg.pose
+        p = msg.pose.pose.position
+        self.poses.append((stamp_ns(msg.header.stamp) * 1e-9, np.array([p.x, p.y, p.z])))
+        self.position_covariances.append(np.array(msg.pose.covariance).reshape(6, 6)[:3, :3])
+        self.last_pose = msg.pose.pose
 
     @staticmethod
     def _sample(msg) -> tuple[float, np.ndarray]:
@@ -328,6 +331,7 @@ class Experiment:
         if command_s > MAX_COMMAND_S:
             out["spoiled"].append(f"the step's command took {1e3 * command_s:.0f} ms to be acknowledged (when the "
                                   "step began is not known well enough)")
+        axis = self.gauge_rotation_in_base.T @ unit  # the step's direction in G
         for name, series in (("estimate", self.poses), ("truth", self.truth)):
             t = np.array([s for s, _ in series])
             p = np.array([q for _, q in series])
@@ -338,9 +342,21 @@ class Experiment:
                 continue
             before = (t > start - BEFORE_S) & (t < start)
             during = (t >= start) & (t < start + RECORD_S)
-            y = (p[during] - p[before].mean(axis=0)) @ (self.gauge_rotation_in_base.T @ unit)
+            covariances = np.array(self.position_covariances[:len(series)])[during] if name == "estimate" else None
+            y = along(p[during] - p[before].mean(axis=0), axis, covariances)
             out[name] = {"t": (t[during] - start).tolist(), "y": y.tolist(), **step_metrics(t[during] - start, y, size)}
         return out
+
+
+def along(displacements: np.ndarray, axis: np.ndarray, covariances: np.ndarray | None = None) -> np.ndarray:
+    """How far each displacement (n, 3) went along the unit `axis`. With the estimate's covariances (n, 3, 3),
+    by generalised least squares: the motion is along the axis (the arm steps along a base axis), so each
+    pose's weakly determined directions are weighted down instead of leaking their scatter into the
+    response when the axis is not one of the gauge's (a gauge turned on its table)."""
+    if covariances is None or not np.all(np.isfinite(covariances)):
+        return displacements @ axis
+    weights = np.linalg.solve(covariances, np.broadcast_to(axis, displacements.shape)[..., None])[..., 0]
+    return np.einsum("ij,ij->i", weights, displacements) / (weights @ axis)
 
 
 def record_flaw(t: np.ndarray, start: float, period: float) -> str:

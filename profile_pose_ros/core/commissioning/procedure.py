@@ -4,6 +4,8 @@ Each controller period (each robot_state) it answers with the velocity that move
 minimum-jerk path to the next station: open loop, since the bridge integrates it over the period, and
 smooth, so the arm's lightly damped mode is barely excited. At a station it waits for the arm to settle,
 then records the controller's poses and the estimates for a while; their averages are the station.
+Each move starts from where the controller says the tool is, so a move cut short (the bridge stopped the
+session, the caller stalled) is resumed from there instead of leaving the rest of the sequence off by it.
 Times are the caller's monotonic clock.
 """
 from __future__ import annotations
@@ -12,10 +14,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..model.transform import Transform
+from ..model.transform import Transform, difference
 from .hand_eye import Station, station
 
 MIN_POSES = 20  # a station with fewer estimates (the gauge out of view, the estimator refusing) is refused
+GAP_S = 0.25  # no period for this long: the arm did not follow the moves meanwhile; resume the phase
 
 
 @dataclass(frozen=True)
@@ -36,12 +39,15 @@ class Procedure:
     offsets: np.ndarray  # (k, 6) stations as offsets from the start pose; the first is normally zero
     timing: Timing = field(default_factory=Timing)
     index: int = -1  # the station being approached or recorded; -1: not started
-    phase: str = "idle"  # idle, moving, settling, recording, returning, done
+    phase: str = "idle"  # idle, moving, settling, recording, returning (at the end), rehoming, done
     phase_start: float = 0.0
     recorded: list[Station] = field(default_factory=list)
     failed: str | None = None
+    resumed: int = 0  # phases started again after a gap
     _move: np.ndarray = field(default_factory=lambda: np.zeros(6))  # the current move's offset change
-    _at: np.ndarray = field(default_factory=lambda: np.zeros(6))  # the offset the last move ended at
+    _start_tool: Transform | None = None  # the controller's pose at the start
+    _tool: Transform | None = None  # ... and the newest
+    _last_call: float = -np.inf
     _tools: list[Transform] = field(default_factory=list)
     _estimates: list[Transform] = field(default_factory=list)
     _covariances: list[np.ndarray] = field(default_factory=list)
@@ -58,14 +64,21 @@ class Procedure:
 
     def velocity(self, now: float, tool: Transform) -> np.ndarray:
         """This period's velocity command (m/s, rad/s, base axes); also records the controller's pose."""
+        self._tool = tool
         if self.phase == "idle":
+            self._start_tool = tool
             self._enter(0, "moving", now)
+        elif now - self._last_call > GAP_S:
+            self._resume(now)
+        self._last_call = now
         elapsed = now - self.phase_start
         t = self.timing
-        if self.phase in ("moving", "returning"):
+        if self.phase in ("moving", "returning", "rehoming"):
             if elapsed >= t.move_s:
                 if self.phase == "returning":
                     self.phase = "done"
+                elif self.phase == "rehoming":
+                    self._enter(self.index, "moving", now)
                 else:
                     self.phase, self.phase_start = "settling", now
                 return np.zeros(6)
@@ -95,8 +108,29 @@ class Procedure:
         last = self.index + 1 >= len(self.offsets)
         self._enter(self.index + 1, "returning" if last else "moving", now)
 
+    def rehome(self, now: float) -> None:
+        """A new session (the bridge armed again mid-sequence) bounds its offsets from where the tool is now:
+        back to the start pose first, then on to the station it was at, so every move stays in the envelope."""
+        if self.phase not in ("idle", "done", "returning"):
+            self._enter(self.index, "rehoming", now)
+            self._last_call = now
+
     def _enter(self, index: int, phase: str, now: float) -> None:
-        """Start the move to station `index`, or back to the start pose when returning."""
-        to = np.zeros(6) if phase == "returning" else self.offsets[index]
-        self._move, self._at = to - self._at, to
+        """Start the move to station `index`, or to the start pose (returning, rehoming), from where the tool is."""
+        to = np.zeros(6) if phase in ("returning", "rehoming") else self.offsets[index]
+        self._move = to - self.measured_offset()
         self.index, self.phase, self.phase_start = index, phase, now
+
+    def _resume(self, now: float) -> None:
+        """After a gap: a move starts again from where the tool is; a station waits and records afresh."""
+        if self.phase in ("moving", "returning", "rehoming"):
+            self._enter(self.index, self.phase, now)
+        elif self.phase in ("settling", "recording"):
+            self.phase, self.phase_start = "settling", now
+        self.resumed += 1
+
+    def measured_offset(self) -> np.ndarray:
+        """The tool's offset from its start pose as the controller reports it (base axes)."""
+        if self._start_tool is None or self._tool is None:
+            return np.zeros(6)
+        return difference(self._tool, self._start_tool)
