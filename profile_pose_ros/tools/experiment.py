@@ -350,12 +350,16 @@ class Experiment:
 
 def along(displacements: np.ndarray, axis: np.ndarray, covariances: np.ndarray | None = None) -> np.ndarray:
     """How far each displacement (n, 3) went along the unit `axis`. With the estimate's covariances (n, 3, 3),
-    by generalised least squares: the motion is along the axis (the arm steps along a base axis), so each
-    pose's weakly determined directions are weighted down instead of leaking their scatter into the
-    response when the axis is not one of the gauge's (a gauge turned on its table)."""
-    if covariances is None or not np.all(np.isfinite(covariances)):
+    weighted by each gauge axis's variance: the arm moves along `axis`, so when that is not one of the
+    gauge's axes (a gauge turned on its table) the weakly determined one does not leak its scatter into the
+    response. Along a gauge axis it is that plain component (correlations are not used: they would turn the
+    arm's small motions off the axis into error)."""
+    if covariances is None:
         return displacements @ axis
-    weights = np.linalg.solve(covariances, np.broadcast_to(axis, displacements.shape)[..., None])[..., 0]
+    variances = np.diagonal(covariances, axis1=1, axis2=2)
+    if not np.all(np.isfinite(variances)) or not np.all(variances > 0):
+        return displacements @ axis
+    weights = axis / variances
     return np.einsum("ij,ij->i", weights, displacements) / (weights @ axis)
 
 
