@@ -8,17 +8,17 @@ placement (errors, their ratio to the reported standard deviations, the robot's 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
 from ..core.commissioning.hand_eye import X_ROTATION, X_TRANSLATION, Y_ROTATION, Y_TRANSLATION, Bounds
-from ..core.commissioning.procedure import Procedure, Timing
-from ..core.commissioning.sequence import stations
 from ..core.model.transform import Transform, difference
-from ..nodes.calibrate import parameter_file, run, write_calibration
+from . import processes
 from .graph import Graph, free_port
 from .report import run_dir, table, write_json
 
@@ -57,48 +57,56 @@ def calibrated(graph: Graph, bridge: dict, out: Path) -> dict:
     """Run profile_pose_calibrate on a graph whose cell, driver and estimator run: the bridge started in
     calibration mode for it and stopped after. Returns the compensator's parameters (gauge_in_base,
     profiler_in_tool); raises RuntimeError, with the reason, when the calibration is refused."""
-    result, procedure, problem = calibration_on(graph, bridge)
-    write_calibration(out, result, procedure, problem)
+    report, problem = calibration_on(graph, bridge, out)
     if problem:
         raise RuntimeError(f"calibration refused: {problem}")
-    return parameter_file(result)["pd_compensator"]["ros__parameters"]
+    return {"gauge_in_base": report["gauge_in_base"], "profiler_in_tool": report["profiler_in_tool"]}
 
 
-def calibration_on(graph: Graph, bridge: dict, timing: Timing = Timing(),
-                   robot_sigma: tuple[float, float] = (Bounds.robot_translation_sigma, Bounds.robot_rotation_sigma)):
-    """(calibration or None, the procedure, what went wrong) on a running cell, driver and estimator."""
+def calibration_on(graph: Graph, bridge: dict, out: Path,
+                   robot_sigma: tuple[float, float] = (Bounds.robot_translation_sigma, Bounds.robot_rotation_sigma)
+                   ) -> tuple[dict | None, str]:
+    """profile_pose_calibrate as a user runs it, its own process, on a running cell, driver and estimator;
+    its files go to `out`. Returns its report (None when it wrote none) and what went wrong ("" if nothing)."""
     graph.start("motoplus_bridge", {**bridge, "mode": "calibration"})
+    command = processes.executable("profile_pose_calibrate", "profile_pose_ros.nodes.calibrate") + [
+        "--out", str(out), "--yes", "--wait", "90", "--robot-sigma", *map(str, robot_sigma)]
+    if graph.namespace:
+        command += ["--ros-args", "-r", f"__ns:=/{graph.namespace}"]
     try:
-        procedure = Procedure(stations(), timing)
-        options = SimpleNamespace(base_frame="base", wait=90.0, yes=True, robot_sigma=list(robot_sigma))
-        result, problem = run(procedure, options, context=graph.context)
+        done = subprocess.run(command, env=dict(os.environ, ROS_DOMAIN_ID=str(graph.domain_id)),
+                              stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=300)
     finally:
         graph.stop("motoplus_bridge")
-    return result, procedure, problem
+    (out / "calibrate.log").write_text(done.stdout + done.stderr)
+    report_file = out / "calibration.json"
+    report = json.loads(report_file.read_text()) if report_file.exists() else None
+    problem = "" if done.returncode == 0 else (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
+    return report, problem
 
 
-def errors(calibration, gauge_in_base, profiler_in_flange) -> dict:
+def errors(report: dict, gauge_in_base, profiler_in_flange) -> dict:
     """Calibration minus truth, in the calibration's own terms, and each component over its std."""
-    truth = np.r_[difference(Transform.from_vector(profiler_in_flange), calibration.profiler_in_tool),
-                  difference(Transform.from_vector(gauge_in_base), calibration.gauge_in_base)]
-    ratio = np.abs(truth) / calibration.sigma
+    truth = np.r_[difference(Transform.from_vector(profiler_in_flange), Transform.from_vector(report["profiler_in_tool"])),
+                  difference(Transform.from_vector(gauge_in_base), Transform.from_vector(report["gauge_in_base"]))]
+    sigma = np.sqrt(np.diag(report["covariance"]))
+    ratio = np.abs(truth) / sigma
     return {"profiler_rotation_mrad": float(np.linalg.norm(truth[X_ROTATION]) * 1e3),
             "profiler_translation_mm": float(np.linalg.norm(truth[X_TRANSLATION]) * 1e3),
             "gauge_rotation_mrad": float(np.linalg.norm(truth[Y_ROTATION]) * 1e3),
             "gauge_translation_mm": float(np.linalg.norm(truth[Y_TRANSLATION]) * 1e3),
             "max_error_over_sigma": float(ratio.max()), "rms_error_over_sigma": float(np.sqrt(np.mean(ratio ** 2))),
-            "error": truth.tolist(),
-            "sigma": calibration.sigma.tolist()}
+            "error": truth.tolist(), "sigma": sigma.tolist()}
 
 
 def calibrate_hidden(out: Path, gauge_in_base, profiler_in_flange, gauge_file: str = "", seed: int = 0,
                      rate_hz: float = 83.333, robot_sigma: tuple[float, float] = (Bounds.robot_translation_sigma,
                                                                                  Bounds.robot_rotation_sigma)):
-    """One calibration on a fresh sim_cell graph: (calibration or None, the procedure, what went wrong)."""
+    """One calibration on a fresh sim_cell graph: (its report or None, what went wrong)."""
     graph = Graph(out / "logs", client_name="calibration_study")
     try:
         bridge = start_cell(graph, gauge_in_base, profiler_in_flange, gauge_file, seed, rate_hz)
-        return calibration_on(graph, bridge, robot_sigma=robot_sigma)
+        return calibration_on(graph, bridge, out, robot_sigma=robot_sigma)
     finally:
         graph.close()
 
@@ -120,22 +128,22 @@ def main(argv=None) -> int:
     rows, results = [], []
     for k in range(args.placements):
         gauge_in_base, profiler_in_flange = hidden_placement(rng)
-        result, procedure, problem = calibrate_hidden(out / f"placement{k}", gauge_in_base, profiler_in_flange,
-                                                      args.gauge, seed=args.seed * 1000 + k, rate_hz=args.rate,
-                                                      robot_sigma=tuple(args.robot_sigma))
+        report, problem = calibrate_hidden(out / f"placement{k}", gauge_in_base, profiler_in_flange, args.gauge,
+                                           seed=args.seed * 1000 + k, rate_hz=args.rate,
+                                           robot_sigma=tuple(args.robot_sigma))
         entry = {"placement": k, "gauge_in_base": gauge_in_base.tolist(),
-                 "profiler_in_flange": profiler_in_flange.tolist(), "problem": problem,
-                 "robot_motion_s": procedure.motion_s}
-        if result is not None:
-            entry.update(errors(result, gauge_in_base, profiler_in_flange), chi2=result.chi2, dof=result.dof)
+                 "profiler_in_flange": profiler_in_flange.tolist(), "problem": problem}
+        if report is not None:
+            entry.update(errors(report, gauge_in_base, profiler_in_flange), chi2=report["chi2"], dof=report["dof"],
+                         robot_motion_s=report["robot_motion_s"])
         results.append(entry)
         row = [str(k), f"{np.degrees(gauge_in_base[5]):+.1f}", f"{np.linalg.norm(profiler_in_flange[:3]) * 1e3:.1f}"]
-        if result is None:
-            row += ["-"] * 5 + [problem[:40]]
+        if report is None:
+            row += ["-"] * 5 + [problem[:60]]
         else:
             row += [f"{entry['gauge_rotation_mrad']:.3f}", f"{entry['profiler_rotation_mrad']:.3f}",
                     f"{entry['profiler_translation_mm']:.3f}", f"{entry['max_error_over_sigma']:.2f}",
-                    f"{result.chi2:.0f}/{result.dof}", problem[:40] or "ok"]
+                    f"{report['chi2']:.0f}/{report['dof']}", problem[:60] or "ok"]
         rows.append(row)
         print(f"placement {k}: {row}", flush=True)
     print(table(["#", "gauge rz (deg)", "profiler offset (mm)", "gauge rot err (mrad)", "profiler rot err (mrad)",
@@ -147,7 +155,7 @@ def main(argv=None) -> int:
               f"{max(r['profiler_translation_mm'] for r in ok):.3f} mm, error/std {max(r['max_error_over_sigma'] for r in ok):.2f} "
               f"(rms over all {np.sqrt(np.mean([r['rms_error_over_sigma'] ** 2 for r in ok])):.2f}: 1 when the "
               "reported deviations are honest, below 1 when conservative); "
-              f"robot motion {results[0]['robot_motion_s']:.1f} s per calibration")
+              f"robot motion {ok[0]['robot_motion_s']:.1f} s per calibration")
     write_json(out / "calibration_study.json", {"seed": args.seed, "gauge": args.gauge, "placements": results})
     print(f"results: {out / 'calibration_study.json'}")
     return 0 if len(ok) == len(results) else 1

@@ -18,6 +18,7 @@ from ..model.transform import Transform, difference
 from .hand_eye import Station, station
 
 MIN_POSES = 20  # a station with fewer estimates (the gauge out of view, the estimator refusing) is refused
+MAX_DWELLS = 3
 GAP_S = 0.25  # no period for this long: the arm did not follow the moves meanwhile; resume the phase
 
 
@@ -88,7 +89,9 @@ class Procedure:
             self._tools, self._estimates, self._covariances = [], [], []
         elif self.phase == "recording":
             self._tools.append(tool)
-            if elapsed >= t.dwell_s:
+            # a station short of poses (the estimates came late: this process or the estimator stalled)
+            # records on, up to MAX_DWELLS times as long, before it is refused
+            if elapsed >= t.dwell_s and (len(self._estimates) >= MIN_POSES or elapsed >= MAX_DWELLS * t.dwell_s):
                 self._close_station(now)
         return np.zeros(6)
 
@@ -100,8 +103,8 @@ class Procedure:
     def _close_station(self, now: float) -> None:
         if len(self._estimates) < MIN_POSES or not self._tools:
             self.failed = (f"station {self.index} (offset {np.round(self.offsets[self.index], 4).tolist()}): "
-                           f"{len(self._estimates)} poses in {self.timing.dwell_s:g} s, fewer than {MIN_POSES}: is "
-                           f"the gauge in view there, and the estimator running?")
+                           f"{len(self._estimates)} poses in {MAX_DWELLS * self.timing.dwell_s:g} s, fewer than "
+                           f"{MIN_POSES}: is the gauge in view there, and the estimator running?")
             self._enter(len(self.offsets), "returning", now)
             return
         self.recorded.append(station(self._tools, self._estimates, self._covariances))
