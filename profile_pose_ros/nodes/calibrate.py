@@ -7,6 +7,8 @@ poses (robot_state) while the arm holds still, and solves A X = Y M (core/commis
 writes a parameter file for pd_compensator (gauge_in_base, profiler_in_tool) and a report with the per-station
 residuals; a sequence that cannot determine them, or whose residuals the covariances do not explain, is
 refused with the reason and writes no parameter file. On hardware it asks the operator before the first move.
+A session the bridge ends mid-sequence is armed again (a few times at most) and the sequence resumed from
+where the controller says the tool is.
 """
 from __future__ import annotations
 
