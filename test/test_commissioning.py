@@ -107,8 +107,9 @@ def test_the_procedure_visits_every_station_within_a_minute_and_comes_back() -> 
 
 
 def test_a_move_cut_short_is_resumed_from_where_the_tool_is() -> None:
-    """The arm stops following for half a second mid-move (the bridge stopped the session and was re-armed):
-    the move goes on from the reported pose, and every station is still where it was designed."""
+    """The arm stops following for half a second mid-move: the move goes on from the reported pose. Later a
+    session is lost and armed again at a station: the tool goes to the start pose, waits for a session to
+    be started there, and goes on. Every station is still where it was designed."""
     offsets = stations()
     procedure = Procedure(offsets, Timing())
     position, now, period, stalled = np.zeros(6), 0.0, 0.012, False
@@ -121,8 +122,12 @@ def test_a_move_cut_short_is_resumed_from_where_the_tool_is() -> None:
         if not stalled and procedure.index == 4 and procedure.phase == "moving" and now - procedure.phase_start > 0.3:
             now, stalled = now + 0.5, True  # no period for 0.5 s: what the arm was told meanwhile never came
         if stalled is True and procedure.index == 7 and procedure.phase == "settling":
-            procedure.rehome(now)  # a new session: to the start pose first, then back to station 7
-            stalled, rehomed_from = "rehomed", position.copy()
+            procedure.rehome(now)  # a session lost and armed again here: back to the start pose first
+            stalled, rehomed_from = "rehoming", position.copy()
+        if procedure.waiting_for_session:
+            assert np.abs(position).max() < 1e-6  # at the start pose, where the caller starts a session
+            procedure.session_restarted(now)
+            stalled = "rehomed"
     assert stalled == "rehomed" and np.abs(rehomed_from).max() > 1e-3
     assert procedure.done and procedure.resumed >= 1 and len(procedure.recorded) == len(offsets)
     for target, recorded in zip(offsets, procedure.recorded):

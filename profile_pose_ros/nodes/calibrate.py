@@ -7,8 +7,8 @@ poses (robot_state) while the arm holds still, and solves A X = Y M (core/commis
 writes a parameter file for pd_compensator (gauge_in_base, profiler_in_tool) and a report with the per-station
 residuals; a sequence that cannot determine them, or whose residuals the covariances do not explain, is
 refused with the reason and writes no parameter file. On hardware it asks the operator before the first move.
-A session the bridge ends mid-sequence is armed again (a few times at most) and the sequence resumed from
-where the controller says the tool is.
+A session the bridge ends mid-sequence is armed again (a few times at most): back to the start pose, a new
+session there, and the sequence resumed; every move starts from where the controller says the tool is.
 """
 from __future__ import annotations
 
@@ -145,20 +145,32 @@ def run(procedure: Procedure, args, context=None) -> tuple[Calibration | None, s
         if not ok:
             return None, f"the bridge did not arm: {message}"
         deadline = time.monotonic() + procedure.motion_s + 60.0
-        for rearm in range(MAX_REARMS + 1):
-            spin_until(executor, lambda: procedure.done or time.monotonic() - node.last_state > SESSION_LOST_S,
+        lost = lambda: time.monotonic() - node.last_state > SESSION_LOST_S  # noqa: E731
+        rearms = 0
+        while not procedure.done and time.monotonic() < deadline:
+            spin_until(executor, lambda: procedure.done or procedure.waiting_for_session or lost(),
                        deadline - time.monotonic())
-            if procedure.done or time.monotonic() > deadline:
+            if procedure.done or time.monotonic() >= deadline:
                 break
-            # The session ended mid-sequence (this process stalled past the bridge's input timeout, or the
-            # controller stopped): arm again, as the operator agreed to the whole sequence; the procedure
-            # resumes from where the controller says the tool is. A controller that is not ready refuses.
-            print(f"the bridge ended the session at station {procedure.index}; arming again", file=sys.stderr)
+            if procedure.waiting_for_session:  # back at the start pose: a session from here, as at the start
+                call(executor, node.stop_client)
+            else:
+                # The session ended mid-sequence (this process stalled past the bridge's input timeout, or the
+                # controller stopped): arm again, as the operator agreed to the whole sequence; a controller
+                # that is not ready refuses. That session's offset bound starts where the tool is, so the
+                # procedure goes back to the start pose and a session is started there again.
+                if rearms == MAX_REARMS:
+                    return None, f"the bridge ended the session {rearms + 1} times mid-sequence"
+                rearms += 1
+                print(f"the bridge ended the session at station {procedure.index}; arming again", file=sys.stderr)
             node.armed = False
-            ok, message = arm(executor, node) if rearm < MAX_REARMS else (False, f"lost {MAX_REARMS + 1} times")
+            ok, message = arm(executor, node)
             if not ok:
                 return None, f"the session ended mid-sequence and could not be resumed: {message}"
-            procedure.rehome(time.monotonic())
+            if procedure.waiting_for_session:
+                procedure.session_restarted(time.monotonic())
+            else:
+                procedure.rehome(time.monotonic())
         if procedure.failed:
             return None, procedure.failed
         if not procedure.done:

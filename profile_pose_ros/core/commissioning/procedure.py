@@ -40,7 +40,7 @@ class Procedure:
     offsets: np.ndarray  # (k, 6) stations as offsets from the start pose; the first is normally zero
     timing: Timing = field(default_factory=Timing)
     index: int = -1  # the station being approached or recorded; -1: not started
-    phase: str = "idle"  # idle, moving, settling, recording, returning (at the end), rehoming, done
+    phase: str = "idle"  # idle, moving, settling, recording, returning (at the end), rehoming, rehomed, done
     phase_start: float = 0.0
     recorded: list[Station] = field(default_factory=list)
     failed: str | None = None
@@ -79,7 +79,7 @@ class Procedure:
                 if self.phase == "returning":
                     self.phase = "done"
                 elif self.phase == "rehoming":
-                    self._enter(self.index, "moving", now)
+                    self.phase = "rehomed"  # at the start pose: the caller starts a session here
                 else:
                     self.phase, self.phase_start = "settling", now
                 return np.zeros(6)
@@ -111,11 +111,22 @@ class Procedure:
         last = self.index + 1 >= len(self.offsets)
         self._enter(self.index + 1, "returning" if last else "moving", now)
 
+    @property
+    def waiting_for_session(self) -> bool:
+        """Back at the start pose after a lost session: the caller ends this session and starts one here."""
+        return self.phase == "rehomed"
+
     def rehome(self, now: float) -> None:
-        """A new session (the bridge armed again mid-sequence) bounds its offsets from where the tool is now:
-        back to the start pose first, then on to the station it was at, so every move stays in the envelope."""
+        """A session armed again mid-sequence bounds its offsets from where the tool is, not from the start
+        pose: go back there first (within that bound), and let the caller start a session there
+        (waiting_for_session, then session_restarted) before going on to the station it was at."""
         if self.phase not in ("idle", "done", "returning"):
             self._enter(self.index, "rehoming", now)
+            self._last_call = now
+
+    def session_restarted(self, now: float) -> None:
+        if self.phase == "rehomed":
+            self._enter(self.index, "moving", now)
             self._last_call = now
 
     def _enter(self, index: int, phase: str, now: float) -> None:
