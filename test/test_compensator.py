@@ -242,22 +242,24 @@ def test_a_corrupt_reference_is_ignored(ros) -> None:
     np.testing.assert_array_equal(node.reference, kept)
 
 
-@pytest.mark.parametrize("ahead, taken", [(3600.0, False), (0.003, False), (0.001, True), (-0.01, True),
-                                          (-0.06, False)])
+# margins of 30 ms and more either side of each bound: a loaded CI runner stalled 40 ms between stamping and
+# taking a pose 10 ms inside a 50 ms window
+@pytest.mark.parametrize("ahead, taken", [(3600.0, False), (0.05, False), (0.005, True), (-0.05, True),
+                                          (-0.5, False)])
 def test_a_pose_is_taken_only_within_its_two_sided_age_window(ros, ahead: float, taken: bool) -> None:
     """A pose stamped in the future is no fresher than a stale one; one taken stays usable for what is
     left of max_pose_age, counted on the node's monotonic clock, never for longer."""
     from rclpy.serialization import serialize_message
 
-    node = compensator(ros, max_pose_age=0.05, max_future=0.002)
+    node = compensator(ros, max_pose_age=0.2, max_future=0.02)
     node.reference = np.zeros(6)
-    stamp = Time(nanoseconds=int((time.time() + ahead) * 1e9)).to_msg()
-    pose = pose_with_covariance(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), stamp, "gauge"),
+    pose = pose_with_covariance(pose_stamped(LOOKING_DOWN, np.array([0.0, 0.0, 0.45]), Time().to_msg(), "gauge"),
                                 np.diag([1e-10] * 3 + [1e-8] * 3))
+    pose.header.stamp = Time(nanoseconds=int((time.time() + ahead) * 1e9)).to_msg()  # stamped last
     received = time.monotonic()
     node._on_pose(serialize_message(pose))
     assert (node.poses, node.corrections) == ((1, 1) if taken else (0, 0))
-    assert node.pose_fresh_until <= (received + 0.05 if taken else -np.inf) + 1e-3
+    assert node.pose_fresh_until <= (received + 0.2 if taken else -np.inf) + 1e-3
     if not taken and ahead > 0:
         assert node.refused["future"] == 1
 
