@@ -5,8 +5,8 @@ from setuptools import find_packages, setup
 
 PACKAGE = "profile_pose_ros"
 
-# Executable name -> module; the node name is the executable name (DESIGN.md), except cell_container's,
-# which holds four nodes under their own names.
+# Executable name -> module; the node name is the executable name (DESIGN.md), except the containers'
+# (cell_container, profiler_estimator), which hold several nodes under their own names.
 EXECUTABLES = {
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator:main",
     "profiler_driver": "profile_pose_ros.nodes.profiler_driver:main",
@@ -14,6 +14,7 @@ EXECUTABLES = {
     "pd_compensator": "profile_pose_ros.nodes.pd_compensator:main",
     "motoplus_bridge": "profile_pose_ros.nodes.motoplus_bridge:main",
     "cell_container": "profile_pose_ros.nodes.cell_container:main",  # the four loop nodes in one process
+    "profiler_estimator": "profile_pose_ros.nodes.profiler_estimator:main",  # driver and estimator in one process
     "bag_recorder": "profile_pose_ros.nodes.bag_recorder:main",
     "bag_player": "profile_pose_ros.nodes.bag_player:main",
     "profile_pose_bag": "profile_pose_ros.tools.bag_cli:main",

@@ -65,6 +65,10 @@ PARAMETERS = [
           "that STATE's trigger: it leaves as soon as that arrives, else with the newest one at this deadline. "
           "0 answers at once (the previous period's correction: a period more of loop delay). Past ~0.5 a late "
           "thread may miss the controller's next period (an answer later than 0.75 periods moves nothing).", 0.0, 0.7),
+    Param("await_reply", False, "Hold each STATE's answer (up to answer_wait periods) for the first correction that "
+          "arrives after the STATE, instead of the one measured at its trigger: for a compensator that answers the "
+          "controller's clock (its period_clock robot_state), whose correction is a reply to this STATE's "
+          "robot_state, stamped with a pose from before it.", read_only=True),
     Param("frame", "base", "Cartesian frame of the increments: base, robot, tool or user.", read_only=True),
     Param("base_frame", "base", "frame_id of robot_state."),
     Param("mode", "loop", "loop: corrections from the compensator (`correction`). calibration: open-loop moves "
@@ -108,11 +112,15 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self._velocities: list[tuple[int, np.ndarray, float]] = []
         self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity): what the answer waits for
         self._latest_arrival = -np.inf  # time.monotonic() when it came
+        self._state_arrived = -np.inf  # time.monotonic() when the newest STATE came
         self.refused = {"frame": 0, "future": 0, "stale": 0, "not_finite": 0, "malformed": 0}
         self._fresh = threading.Condition(self._lock)  # a correction arrived
         self.latency = LatencyWindow("trigger_to_send_ms")  # the newest correction's trigger -> its increment sent
         self._sent: list[tuple[int, tuple[int, ...]]] = []  # increments sent, not yet published
         self.stale_periods = 0
+        # armed periods whose answer carried a correction from a pose at most one period old when it left
+        # (over the node's life, beside the armed periods): what the arm feels of the loop
+        self.answered_in_period = 0
         self.state_pub = self.create_publisher(PoseStamped, "robot_state", 10)
         self.increment_pub = self.create_publisher(TwistStamped, "~/increment", 100)
         # Corrections and the sent-increment note are served straight from their wait set (direct_input.py):
@@ -178,8 +186,10 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         period = self.limits.period_s
         deadline = state_wall_time + self.values["answer_wait"] * period
         since_ns = (state_wall_time - 0.5 * period) * 1e9
+        reply, state_arrived = self.values["await_reply"], self._state_arrived
         with self._fresh:
-            while self._latest is None or self._latest[0] < since_ns:
+            while (self._latest_arrival < state_arrived if reply
+                   else self._latest is None or self._latest[0] < since_ns):
                 remaining = deadline - time.time()
                 if remaining <= 0.0:
                     return
@@ -213,6 +223,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         """Socket thread, right after a moving CORRECTION left: note it; the executor publishes it.
         Publishing here would make the thread that must answer every STATE within the period wait for the GIL."""
         self.latency.add(sent - stamp)
+        self.answered_in_period += sent - stamp <= self.limits.period_s
         with self._lock:
             self._sent.append((int(round(stamp * 1e9)), units))
         self._sent_guard.trigger()
@@ -227,6 +238,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
 
     def _on_state(self, state: mp.State, host_time: float) -> None:
         """robot_state: the tool's pose in the base frame as the controller reports it (its Rx Ry Rz angles)."""
+        self._state_arrived = time.monotonic()  # before the publish: a reply can come before it returns
         pose = np.array(mp.units_to_metres(state.pose))
         self.state_pub.publish(encode_pose_cdr(rotation_from_controller_angles(pose[3:]), pose[:3], int(host_time * 1e9),
                                                self.values["base_frame"]))
@@ -286,6 +298,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
                   "safety_violations": monitor.total_violations,
                   **{f"safety_{name}": count for name, count in monitor.violations.items()},
                   "last_error": c.last_error or "none", "stale_periods": self.stale_periods,
+                  "armed_periods": c.counters.corrections, "answered_within_a_period": self.answered_in_period,
                   **{f"refused_{why}": count for why, count in self.refused.items()}}
         if c.last_state is not None:
             values.update({"controller_status": c.last_state.status, "echoed_seq": c.last_state.echoed_seq,

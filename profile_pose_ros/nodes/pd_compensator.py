@@ -30,6 +30,7 @@ from ..core.timing.freshness import describe_age, fresh_until, stamp_age_ok
 from ..core.timing.latency_window import LatencyWindow
 from ..core.commissioning.first_motion import FirstMotionCheck, ProbeDesign
 from ..core.control.modal_control import ModalController, ModalDesign
+from ..core.control.period_fusion import PeriodPose, fuse_period
 from ..core.wire.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
 from ..core.model.rotation import rotation_from_quaternion_xyzw
 from ..core.estimation.result import position_sigma
@@ -95,6 +96,13 @@ PARAMETERS = [
           "answers at once), plus (period - one interpolation tick) / 2 when the controller spreads each "
           "increment over its ticks, plus the arm's command-to-motion delay.",
           0.001, 0.5, read_only=True),
+    Param("period_clock", "pose", "What starts a control period. pose: each pose, when the controller triggers the "
+          "profiler (one pose a period); a faster profiler's poses on a grid of control_period, the others left out "
+          "(modal law) or each sent on (PD law). robot_state: the controller's STATE, as the bridge relays it: the "
+          "poses since the last one, fused by their covariances, drive the law once and the correction leaves then, "
+          "one a controller period (a profiler on its own faster clock; the bridge's await_reply holds each answer "
+          "for it); until robot_state flows (the bridge arms on a live correction), as pose. Needs the compensator "
+          "in a process of its own.", read_only=True),
     Param("reference_shaping", "lag", "modal: how a new reference is reached. lag: the feedback alone towards "
           "the reference through a first-order filter (reference_time_constant): ~1.1 s to settle a step. zvdd: "
           "along a planned command, a ramp at 0.8 x max_speed through a ZVDD shaper matched to each axis's mode "
@@ -132,6 +140,7 @@ PARAMETERS = [
 ]
 
 _GAINS = ("kp", "kd", "max_speed")
+PERIOD_CLOCKS = ("pose", "robot_state")
 QUATERNION_NORM_TOLERANCE = 1e-3  # a unit quaternion's norm, as float32 or float64 messages carry it
 
 
@@ -174,7 +183,12 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.first_motion = (FirstMotionCheck(ProbeDesign(tuple(v["first_motion_amplitude"]),
                                                           max_rotation_error=v["first_motion_max_rotation_error"]))
                              if v["first_motion_check"] else None)
+        if v["period_clock"] not in PERIOD_CLOCKS:
+            raise ValueError(f"period_clock must be one of {', '.join(PERIOD_CLOCKS)}, not {v['period_clock']!r}")
+        if v["period_clock"] == "robot_state" and local is not None:
+            raise ValueError("period_clock robot_state needs pd_compensator in a process of its own, not composed")
         self.robot_heard = -math.inf  # time.monotonic() of the newest robot_state: the bridge is armed
+        self.period_poses: list[PeriodPose] = []  # period_clock robot_state: the poses since the last STATE
         self.last_rotation = np.eye(3)  # the newest pose's rotation (F in G): the tool's lever arm
         self.modal = modal_controller_from(v)
         # The PD law's filter and shaper; the modal law has its own filter and needs no shaper.
@@ -208,7 +222,12 @@ class PdCompensatorNode(RefusalCounter, Node):
                                                 LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
             self.direct_input.add(pose_sub, self._on_pose)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
-        self.create_subscription(PoseStamped, "robot_state", self._on_robot_state, 10)
+        if v["period_clock"] == "robot_state":  # the controller's clock: taken as it comes, like the poses
+            state_sub = self.create_subscription(PoseStamped, "robot_state", self._on_controller_period,
+                                                 LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
+            self.direct_input.add(state_sub, self._on_controller_period)
+        else:
+            self.create_subscription(PoseStamped, "robot_state", self._on_robot_state, 10)
         self.latency = LatencyWindow("trigger_to_correction_ms")  # the pose's stamp -> its correction published
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
 
@@ -277,6 +296,17 @@ class PdCompensatorNode(RefusalCounter, Node):
 
     def _on_robot_state(self, _msg: PoseStamped) -> None:
         self.robot_heard = time.monotonic()
+
+    def _on_controller_period(self, _serialized: bytes) -> None:
+        """period_clock robot_state: a controller period began; the poses since the last one drive the law."""
+        with self._lock:
+            self.robot_heard = time.monotonic()
+            poses, self.period_poses = self.period_poses, []
+            if not poses or self.loop_refused or self.robot_heard > self.pose_fresh_until:
+                return  # nothing new, or stale: the watchdog's zeros
+            velocity = self.modal.x[:, 1] if self.modal is not None else self.filter.velocity
+            fused = fuse_period(poses, velocity)
+            self._drive(fused.stamp, fused.stamp_ns, fused.value, fused.variance, period_start=True)
 
     def _on_pose(self, serialized: bytes) -> None:
         with self._lock:
@@ -366,8 +396,18 @@ class PdCompensatorNode(RefusalCounter, Node):
             return  # no reference: the watchdog keeps the output at zero
         if self.loop_refused:
             return
+        if self.values["period_clock"] == "robot_state" and received - self.robot_heard <= ROBOT_LIVE_S:
+            self.period_poses.append(PeriodPose(stamp, pose_stamp_ns, z, variance))
+            return
+        # the poses' clock, also while the controller's STATEs do not flow (the bridge arms on a live correction)
+        self.period_poses = []
+        self._drive(stamp, pose_stamp_ns, z, variance)
+
+    def _drive(self, stamp: float, stamp_ns: int, z: np.ndarray, variance: np.ndarray,
+               period_start: bool = False) -> None:
+        """One measurement through the law, and its correction (the modal law: one a period)."""
         if self.modal is not None:
-            self.modal.update(stamp, z, variance, self.reference)
+            self.modal.update(stamp, z, variance, self.reference, period_start)
             if self.reference is None:
                 return  # no target yet: the watchdog keeps the output at zero
             self.last_error = self.reference - self.modal.position
@@ -382,7 +422,7 @@ class PdCompensatorNode(RefusalCounter, Node):
             velocity = pd_velocity(self.last_error, self.filter.velocity, self.gains)
             if self.shaper is not None:
                 velocity = self.shaper(stamp, velocity)  # a mix of limited velocities: still within max_speed
-        self._publish(velocity, pose_stamp_ns)
+        self._publish(velocity, stamp_ns)
         self.latency.add(time.time() - stamp)
         self.corrections += 1
 
@@ -411,6 +451,7 @@ class PdCompensatorNode(RefusalCounter, Node):
         for state in (self.filter, self.modal, self.shaper):
             if state is not None:
                 state.reset()
+        self.period_poses = []
         # Stamped with the newest pose's trigger time: a zero that says how old its information is. Once
         # the poses are stale it is stale too, so the bridge sees the stream end and disarms until ~/start
         # (a zero stamped now would keep a session alive that a restarted estimator then moves again).

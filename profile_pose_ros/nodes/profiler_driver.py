@@ -63,6 +63,9 @@ PARAMETERS = [
     Param("reconnect_min", 0.1, "First reconnect delay (s); doubles up to reconnect_max.", 0.01, 10.0,
           read_only=True),
     Param("reconnect_max", 0.5, "Longest reconnect delay (s).", 0.01, 60.0, read_only=True),
+    Param("profile_decimation", 1, "Publish every this many profiles on `profile` (1: all). For profiler_estimator, "
+          "where the estimate is made in this process and `profile` serves only a recorder or a viewer; a separate "
+          "pose_estimator takes only the profiles published.", 1, 1000, read_only=True),
     Param("diagnostics_period", 1.0, "Period of /diagnostics (s).", 0.02, 60.0, read_only=True),
     *REALTIME_PARAMETERS,
 ]
@@ -99,6 +102,7 @@ class ProfilerDriverNode(Node):
         self.profile_out = LoopOutput(self.profile_pub, local, self.get_logger())
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         logger = self.get_logger()
+        self._read = 0  # profiles emitted: every profile_decimation-th is published
         self._newest: bytes | None = None  # composed: the newest profile of the current read, to hand over
         self.superseded = 0  # composed: profiles a newer one replaced before the estimator took it
         self.link = ProfilerLink(source, trigger, settings, self._emit,
@@ -117,7 +121,9 @@ class ProfilerDriverNode(Node):
         straight from the device's counts (ProfileFrame.xyz_table)."""
         sec, nanosec = divmod(int(round(stamp * 1e9)), 1_000_000_000)
         serialized = encode_xyz_table_cdr(frame.xyz_table(), sec, nanosec, self.values["frame_id"])
-        self.profile_out.publish(serialized)
+        self._read += 1
+        if self._read % self.values["profile_decimation"] == 0:
+            self.profile_out.publish(serialized)
         self.latency.add(time.time() - stamp)
         if self.profile_out.local is not None:
             self.superseded += self._newest is not None

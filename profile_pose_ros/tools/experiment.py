@@ -43,6 +43,9 @@ RECORD_S, SETTLE_S, BEFORE_S = 1.5, 1.5, 0.2
 METRICS = ("Mp", "zeta", "Mf_um", "rise_time_s", "settling_time_s", "end_fraction")  # what step_metrics returns
 SIM_ARM_DELAY_S = 0.01061  # sim_cell's arm_delay default: 4 ms clock + the paper's 6.61 ms transfer
 INTERPOLATION_CLOCK_S = 0.004  # the controller spreads each period's increment over its 4 ms clock's ticks
+# A 1 kHz profile's trigger -> pose at the compensator (~1.5 ms on sim_cell beside the loop) plus half the
+# poses' spacing: how old a controller period's newest pose is when the STATE comes (docs/robot_side.md)
+REPLY_POSE_AGE_S = 0.002
 REACHED = 0.95  # a step counts as reached when the record's last 0.2 s average this share of it or more
 END_S = 0.2
 MAX_HOLE_S = 0.05  # a longer gap between a record's samples can hide a peak of the 10 Hz ring (half a cycle)
@@ -116,13 +119,26 @@ def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.nd
     return np.fft.rfftfreq(len(residual), dt), 2.0 * np.abs(np.fft.rfft(residual)) / max(len(residual), 1)
 
 
-def loop_delay(period_s: float, answer_wait: float) -> float:
+def loop_delay(period_s: float, answer_wait: float, controller_clock: bool = False) -> float:
     """The modal law's loop_delay on sim_cell: from a pose's stamp to the arm moving on its increment. The
     increment answers this period's STATE (answer_wait > 0: the bridge waits for it) or the next one's
     (answer_wait 0), is applied from the period after that, spread over its ticks (on average half a period
-    less one tick later), then the arm's own delay."""
+    less one tick later), then the arm's own delay. controller_clock (the compensator's period_clock
+    robot_state): the period's newest pose is already REPLY_POSE_AGE_S old at the STATE it answers."""
     answered = period_s if answer_wait > 0 else 2 * period_s
-    return answered + (period_s - INTERPOLATION_CLOCK_S) / 2 + SIM_ARM_DELAY_S
+    return (answered + (period_s - INTERPOLATION_CLOCK_S) / 2 + SIM_ARM_DELAY_S
+            + (REPLY_POSE_AGE_S if controller_clock else 0.0))
+
+
+def add_period_clock_option(parser) -> None:
+    parser.add_argument("--period-clock", choices=["pose", "robot_state"], default="pose",
+                        help="pd_compensator's period_clock: robot_state fuses a faster profiler's poses once a "
+                        "controller period and answers the controller's STATE (the bridge's await_reply set with it)")
+
+
+def controller_clocked(compensator: dict | None) -> bool:
+    """Whether the compensator answers the controller's clock (period_clock robot_state)."""
+    return {**_COMPENSATOR_DEFAULTS, **(compensator or {})}["period_clock"] == "robot_state"
 
 
 def bridge_for(compensator: dict | None) -> dict:
@@ -132,6 +148,8 @@ def bridge_for(compensator: dict | None) -> dict:
     model knows (docs/robot_side.md)."""
     values = {**_COMPENSATOR_DEFAULTS, **(compensator or {})}
     planned = values["control_law"] == "modal" and values["reference_shaping"] == "zvdd"
+    if controller_clocked(compensator):  # the correction is a reply to the STATE: held for it
+        return {"await_reply": True}
     return {"answer_wait": 0.0} if planned else {}
 
 
@@ -145,13 +163,15 @@ class Experiment:
                  compensator: dict | None = None, refine_model: str = "dense", profile_rate_hz: float | None = None,
                  bag: Path | None = None, gauge_file: str = "", estimator: dict | None = None,
                  realtime_priority: int = 0, composed: bool = False, bridge: dict | None = None,
-                 sim_truth: dict | None = None, calibrate: Path | None = None, first_motion: bool = False) -> None:
+                 sim_truth: dict | None = None, calibrate: Path | None = None, first_motion: bool = False,
+                 estimator_in_driver: bool = False) -> None:
         """rate_hz: the controller's (83.333 or 250), which also triggers the profiler unless
         profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there;
         gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one);
         estimator, compensator: parameters for those nodes beyond the defaults; realtime_priority: the four
         loop nodes' (nodes/process_tuning.py; the simulator and the recorder stay under the normal scheduler);
-        composed: the four loop nodes in one cell_container process instead of four; sim_truth: sim_cell's
+        composed: the four loop nodes in one cell_container process instead of four; estimator_in_driver:
+        driver and estimator in one profiler_estimator process (the compensator and the bridge their own); sim_truth: sim_cell's
         hidden placement (gauge_in_base, profiler_in_flange); calibrate: measure it first with
         profile_pose_calibrate (its files go there) and give the compensator the result; first_motion: the
         compensator's first-motion check before the loop closes (off for the tools that measure other things)."""
@@ -187,7 +207,8 @@ class Experiment:
             "pose_estimator": {"diagnostics_period": 0.5, "refine_model": refine_model, **gauge, **(estimator or {}),
                                **loop},
             "pd_compensator": {"diagnostics_period": 0.5, "control_period": period,
-                               "loop_delay": loop_delay(period, bridge_params.get("answer_wait", _BRIDGE_DEFAULTS["answer_wait"])),
+                               "loop_delay": loop_delay(period, bridge_params.get("answer_wait", _BRIDGE_DEFAULTS["answer_wait"]),
+                                                        controller_clocked(compensator)),
                                **compensator, **loop},
             "motoplus_bridge": {"port": robot_port, "period": period, "diagnostics_period": 0.5,
                                 "max_step": self.max_step.tolist(), **bridge_params, **loop}}
@@ -196,8 +217,12 @@ class Experiment:
                 raise ValueError("calibrate with the loop's nodes as processes, not composed")
             graph.start_composed(nodes)
         else:
-            for executable in ("profiler_driver", "pose_estimator"):
-                graph.start(executable, nodes[executable])
+            if estimator_in_driver:
+                graph.start_composed({name: nodes[name] for name in ("profiler_driver", "pose_estimator")},
+                                     name="profiler_estimator")
+            else:
+                for executable in ("profiler_driver", "pose_estimator"):
+                    graph.start(executable, nodes[executable])
             if calibrate is not None:
                 mounting = calibrated(graph, nodes["motoplus_bridge"], calibrate)
                 compensator.update(mounting)

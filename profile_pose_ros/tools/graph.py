@@ -22,6 +22,7 @@ MODULES = {
     "pd_compensator": "profile_pose_ros.nodes.pd_compensator",
     "motoplus_bridge": "profile_pose_ros.nodes.motoplus_bridge",
     "cell_container": "profile_pose_ros.nodes.cell_container",
+    "profiler_estimator": "profile_pose_ros.nodes.profiler_estimator",
     "bag_recorder": "profile_pose_ros.nodes.bag_recorder",
     "bag_player": "profile_pose_ros.nodes.bag_player",
 }
@@ -73,7 +74,7 @@ def installed_executable(executable: str) -> Path | None:
     return path if path is not None and os.access(path, os.X_OK) else None
 
 
-ESTIMATING = ("pose_estimator", "cell_container")  # executables that load the compiled estimator
+ESTIMATING = ("pose_estimator", "cell_container", "profiler_estimator")  # executables that load the compiled estimator
 _build_failed = False  # this process tried to build the estimator and could not: do not try at every start
 
 
@@ -193,8 +194,8 @@ class Graph:
         return self._record_and_launch(name, command)
 
     def start_composed(self, node_params: dict[str, dict], name: str = "cell_container") -> subprocess.Popen:
-        """cell_container (the loop's four nodes in one process), each node with its own parameters: a
-        file with one block per node name, since `-p` would give every node the same value (`port` is
+        """A container of several nodes (cell_container: the loop's four; profiler_estimator: driver and
+        estimator), each node with its own parameters: a file with one block per node name, since `-p` would give every node the same value (`port` is
         the driver's profiler port and the bridge's controller port)."""
         prepare_kernel()
         command = self._ros_command(name)

@@ -204,8 +204,11 @@ class ModalController:
     def position(self) -> np.ndarray:
         return self.x[:, 0].copy()
 
-    def update(self, time: float, z: np.ndarray, variance: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
-        """The velocity for this pose (zero without a reference: the pose is only measured)."""
+    def update(self, time: float, z: np.ndarray, variance: np.ndarray, reference: np.ndarray | None,
+               period_start: bool = False) -> np.ndarray:
+        """The velocity for this pose (zero without a reference: the pose is only measured). period_start: the
+        controller's own clock says a period starts here (the compensator's period_clock robot_state, one fused
+        pose a period), so neither the poses' spacing nor a grid decides it."""
         T = self.design.period_s
         spacing = T  # the poses' median spacing: measured below whenever a period is under way
         if self.time is not None:
@@ -216,7 +219,7 @@ class ModalController:
                 self.intervals.append(min(time - self.last_stamp, T))
                 self.last_stamp = time
                 spacing = median(self.intervals)
-                if gap < 1.0 - 0.5 * spacing / T:
+                if not period_start and gap < 1.0 - 0.5 * spacing / T:
                     self.skipped += 1  # this period has its pose: this one has no increment of its own
                     self.started_period = False
                     return self.velocity
@@ -234,7 +237,7 @@ class ModalController:
             # than the controller start a period with every pose, each up to half a spacing early: the model
             # ran up to 1.5x fast. Pulling a grid towards such stamps drifts it, as the stamps that start a
             # period are chosen by where the grid is.)
-            self.time = time if spacing >= ONE_POSE_A_PERIOD * T else self.time + periods * T
+            self.time = time if period_start or spacing >= ONE_POSE_A_PERIOD * T else self.time + periods * T
             self._measure(z, variance)
         self.started_period = reference is not None
         if reference is None:
