@@ -6,7 +6,7 @@ from setuptools import find_packages, setup
 PACKAGE = "profile_pose_ros"
 
 # Executable name -> module; the node name is the executable name (DESIGN.md), except the containers'
-# (cell_container, profiler_estimator), which hold several nodes under their own names.
+# (cell_container, profiler_estimator, compensator_bridge), which hold several nodes under their own names.
 EXECUTABLES = {
     "pose_estimator": "profile_pose_ros.nodes.pose_estimator:main",
     "profiler_driver": "profile_pose_ros.nodes.profiler_driver:main",
@@ -15,6 +15,7 @@ EXECUTABLES = {
     "motoplus_bridge": "profile_pose_ros.nodes.motoplus_bridge:main",
     "cell_container": "profile_pose_ros.nodes.cell_container:main",  # the four loop nodes in one process
     "profiler_estimator": "profile_pose_ros.nodes.profiler_estimator:main",  # driver and estimator in one process
+    "compensator_bridge": "profile_pose_ros.nodes.compensator_bridge:main",  # compensator and bridge in one process
     "bag_recorder": "profile_pose_ros.nodes.bag_recorder:main",
     "bag_player": "profile_pose_ros.nodes.bag_player:main",
     "profile_pose_bag": "profile_pose_ros.tools.bag_cli:main",

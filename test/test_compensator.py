@@ -321,3 +321,55 @@ def test_a_covariance_near_the_float_limit_is_refused_as_imprecise(ros) -> None:
                                 np.diag([1e300, 1e-10, 1e-10] + [1e-8] * 3))
     node._on_pose(serialize_message(vast))
     assert (node.poses, node.refused["imprecise"]) == (0, 1)
+
+
+def test_on_the_controllers_clock_each_state_gets_one_correction_from_the_poses_before_it(ros) -> None:
+    """period_clock robot_state: poses alone drive the law on their own clock until the controller's STATEs
+    flow (the bridge arms on such a correction); from then on nothing leaves on a pose, and each robot_state
+    gets exactly one correction, made from the poses since the last one and stamped with the newest of them."""
+    node = compensator(ros, control_law="modal", period_clock="robot_state", control_period=0.004)
+    talker = ros.node("talker")
+    poses = talker.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
+    states = talker.create_publisher(PoseStamped, "robot_state", 10)
+    reference = talker.create_publisher(PoseStamped, "reference_pose", 10)
+    corrections = []
+    talker.create_subscription(TwistStamped, "correction", corrections.append, 100)
+    translation = np.array([0.0, 0.0, 0.45])
+    covariance = np.diag([1e-10] * 3 + [1e-8] * 3)
+    assert ros.spin_until(lambda: node.count_publishers("robot_state") and node.count_subscribers("correction"), 5)
+
+    def send_poses(count: int) -> int:
+        """`count` fresh poses, each taken before the next is sent; the newest one's stamp (ns)."""
+        for _ in range(count):
+            taken, stamp = node.poses, time.time_ns()
+            pose = pose_stamped(LOOKING_DOWN, translation, Time(nanoseconds=stamp).to_msg(), "gauge")
+            poses.publish(pose_with_covariance(pose, covariance))
+            assert ros.spin_until(lambda: node.poses > taken, 5.0)
+        return stamp
+
+    send_poses(1)
+    reference.publish(pose_stamped(LOOKING_DOWN, translation + [1e-3, 0, 0], talker.get_clock().now().to_msg(),
+                                   "gauge"))
+    assert ros.spin_until(lambda: node.reference is not None, 5.0)
+    before_states = node.corrections
+    send_poses(20)  # ~20 poses, a few control periods of 4 ms: the poses' clock
+    assert ros.spin_until(lambda: len(corrections) >= before_states, 5.0)
+    assert node.corrections > before_states
+    for _ in range(5):
+        heard = node.robot_heard
+        states.publish(pose_stamped(np.eye(3), np.zeros(3), talker.get_clock().now().to_msg(), "base"))
+        assert ros.spin_until(lambda: node.robot_heard > heard, 5.0)
+        made = node.corrections
+        newest = send_poses(3)
+        assert node.corrections == made, "a correction left on a pose, not on the controller's clock"
+        count = len(corrections)
+        states.publish(pose_stamped(np.eye(3), np.zeros(3), talker.get_clock().now().to_msg(), "base"))
+        assert ros.spin_until(lambda: node.corrections > made, 5.0)
+        assert node.corrections == made + 1
+        assert ros.spin_until(lambda: any(stamp_ns(m) == newest for m in corrections[count:]), 5.0)
+        reply = next(m for m in corrections[count:] if stamp_ns(m) == newest)
+        assert reply.twist.linear.x > 0  # towards the reference
+
+
+def stamp_ns(message) -> int:
+    return message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec

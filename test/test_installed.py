@@ -25,6 +25,8 @@ TOOLS = [["profile_pose_bag"], ["profile_pose_bringup"], ["profile_pose_calibrat
 NODES = {"pose_estimator": ["pose_estimator"], "profiler_driver": ["profiler_driver"],
          "pd_compensator": ["pd_compensator"], "motoplus_bridge": ["motoplus_bridge"], "sim_cell": ["sim_cell"],
          "cell_container": ["profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge"],
+         "profiler_estimator": ["profiler_driver", "pose_estimator"],
+         "compensator_bridge": ["pd_compensator", "motoplus_bridge"],
          "bag_recorder": ["bag_recorder"], "bag_player": ["bag_player"]}
 
 # the guide's commands, in the test's venv and workspace

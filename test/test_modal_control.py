@@ -271,3 +271,18 @@ def test_zero_vibration_shapers_leave_no_vibration_at_their_mode() -> None:
 def test_a_bad_design_is_refused(change: dict) -> None:
     with pytest.raises(ValueError):
         ModalController(design(**change))
+
+
+def test_the_controllers_clock_starts_a_period_at_every_call_however_close_the_stamps() -> None:
+    """period_clock robot_state: each STATE brings the period's fused pose, stamped with its newest pose. A STATE
+    handled late and the next one on time give stamps well under a period apart; the controller still ran a
+    period between them, so the law runs one (on the poses' own spacing it would skip it)."""
+    z, variance, reference = np.zeros(6), np.full(6, 1e-12), np.zeros(6)
+    for period_start, skipped in ((False, 1), (True, 0)):
+        modal = ModalController(design())
+        for k in range(5):
+            modal.update(k * PERIOD, z, variance, reference, period_start=period_start)
+        modal.update(4.4 * PERIOD, z + 1e-4, variance, reference, period_start=period_start)
+        assert modal.skipped == skipped
+        assert modal.started_period == period_start
+    assert modal.position[0] > 0.5e-4  # and measured (the pose skipped would leave it at 0)

@@ -237,7 +237,7 @@ class TriggerLink:
         self._unwrap.reset()
         self._last_micros = None
         self._last_seq = None
-        self.clock.reset()
+        self.clock.reset("the MCU (re)started")
 
     def _transmission(self, n_bytes: int) -> float:
         return 10.0 * n_bytes / self.baudrate  # 8N1: ten bits per byte
@@ -261,7 +261,7 @@ class TriggerLink:
             # back by over a second without wrapping: the MCU restarted (lines can be a few us out of
             # order when a PONG and a trigger race for the UART, so small steps back are normal)
             self._unwrap.reset()
-            self.clock.reset()
+            self.clock.reset("the MCU's clock went back over a second")
         self._last_micros = micros
         device_s = self._unwrap(micros) * 1e-6
         self.clock.add(device_s, sent_at, delay_bound)

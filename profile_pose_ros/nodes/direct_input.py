@@ -60,6 +60,8 @@ class DirectInput:
         self.wait_set = None
         if subscription is not None:
             self.add(subscription, callback)
+        else:
+            self._new_wait_set()  # a guard alone is worth waiting on (the bridge composed: its sent increments)
 
     def add(self, subscription: Subscription, callback: Callable, with_info: bool = False) -> None:
         """One more subscription (in a ServedDirectly group) to serve; each ready one is drained in turn.

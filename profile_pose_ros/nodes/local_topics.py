@@ -45,11 +45,23 @@ def profile_input_qos(depth: int) -> QoSProfile:
                       durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
 
 
-class LocalTopics:
-    """Resolved topic name -> the callbacks of the composed nodes that take it."""
+LOOP_TOPICS = ("profile", "pose_with_covariance", "correction", "robot_state")
 
-    def __init__(self) -> None:
+
+class LocalTopics:
+    """Resolved topic name -> the callbacks of the composed nodes that take it; and which of the loop's topics
+    (relative names) both ends of which are in this process, so a node knows whether to take one here or
+    subscribe over DDS."""
+
+    def __init__(self, carried: tuple[str, ...] = LOOP_TOPICS) -> None:
+        unknown = set(carried) - set(LOOP_TOPICS)
+        if unknown:
+            raise ValueError(f"not loop topics: {sorted(unknown)}")
+        self.carried = frozenset(carried)
         self._takers: dict[str, list[Taker]] = {}
+
+    def carries(self, topic: str) -> bool:
+        return topic in self.carried
 
     def take(self, topic: str, callback: Taker) -> None:
         self._takers.setdefault(topic, []).append(callback)

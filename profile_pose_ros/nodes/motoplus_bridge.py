@@ -33,7 +33,7 @@ from ..core.model.transform import rotation_from_controller_angles
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
 from .diagnostics import ERROR, OK, WARN, RefusalCounter, diagnostic_array
 from .direct_input import DirectInput, ServedDirectly, spin
-from .local_topics import LOOP_INPUT_QOS, LocalTopics
+from .local_topics import LOOP_INPUT_QOS, LocalTopics, LoopOutput
 from .parameters import Param, declare_all, updated
 from .process_tuning import LOOP_SWITCH_INTERVAL_S, REALTIME_PARAMETERS
 from .run import run_node
@@ -122,6 +122,9 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         # (over the node's life, beside the armed periods): what the arm feels of the loop
         self.answered_in_period = 0
         self.state_pub = self.create_publisher(PoseStamped, "robot_state", 10)
+        # composed with the compensator: each STATE reaches it in this thread, and its reply comes back the same way
+        self.state_out = LoopOutput(self.state_pub, local if local is not None and local.carries("robot_state")
+                                    else None, self.get_logger())
         self.increment_pub = self.create_publisher(TwistStamped, "~/increment", 100)
         # Corrections and the sent-increment note are served straight from their wait set (direct_input.py):
         # the socket thread is waiting for each correction, and through the executor each waited behind its
@@ -130,7 +133,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self._sent_guard = self.create_guard_condition(self._publish_increments, callback_group=direct)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.direct_input = DirectInput(None, self.context, guard=self._sent_guard)
-        if local is not None:
+        if local is not None and local.carries("correction") and v["mode"] == "loop":
             local.take(self.resolve_topic_name(MODES[v["mode"]]), self._on_correction)
         else:
             corrections = self.create_subscription(TwistStamped, MODES[v["mode"]], self._on_correction, LOOP_INPUT_QOS,
@@ -240,8 +243,10 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         """robot_state: the tool's pose in the base frame as the controller reports it (its Rx Ry Rz angles)."""
         self._state_arrived = time.monotonic()  # before the publish: a reply can come before it returns
         pose = np.array(mp.units_to_metres(state.pose))
-        self.state_pub.publish(encode_pose_cdr(rotation_from_controller_angles(pose[3:]), pose[:3], int(host_time * 1e9),
-                                               self.values["base_frame"]))
+        serialized = encode_pose_cdr(rotation_from_controller_angles(pose[3:]), pose[:3], int(host_time * 1e9),
+                                     self.values["base_frame"])
+        self.state_out.publish(serialized)
+        self.state_out.hand_over(serialized)
 
     def pump(self, timeout_sec: float = 0.0) -> int:
         """Handle queued corrections and sent increments (see direct_input.py); spin() or a test harness calls this."""

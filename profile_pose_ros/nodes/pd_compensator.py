@@ -101,8 +101,9 @@ PARAMETERS = [
           "(modal law) or each sent on (PD law). robot_state: the controller's STATE, as the bridge relays it: the "
           "poses since the last one, fused by their covariances, drive the law once and the correction leaves then, "
           "one a controller period (a profiler on its own faster clock; the bridge's await_reply holds each answer "
-          "for it); until robot_state flows (the bridge arms on a live correction), as pose. Needs the compensator "
-          "in a process of its own.", read_only=True),
+          "for it); until robot_state flows (the bridge arms on a live correction), as pose. Composed with the "
+          "bridge (compensator_bridge), the correction is made in the bridge's thread as each STATE comes.",
+          read_only=True),
     Param("reference_shaping", "lag", "modal: how a new reference is reached. lag: the feedback alone towards "
           "the reference through a first-order filter (reference_time_constant): ~1.1 s to settle a step. zvdd: "
           "along a planned command, a ramp at 0.8 x max_speed through a ZVDD shaper matched to each axis's mode "
@@ -185,8 +186,6 @@ class PdCompensatorNode(RefusalCounter, Node):
                              if v["first_motion_check"] else None)
         if v["period_clock"] not in PERIOD_CLOCKS:
             raise ValueError(f"period_clock must be one of {', '.join(PERIOD_CLOCKS)}, not {v['period_clock']!r}")
-        if v["period_clock"] == "robot_state" and local is not None:
-            raise ValueError("period_clock robot_state needs pd_compensator in a process of its own, not composed")
         self.robot_heard = -math.inf  # time.monotonic() of the newest robot_state: the bridge is armed
         self.period_poses: list[PeriodPose] = []  # period_clock robot_state: the poses since the last STATE
         self.last_rotation = np.eye(3)  # the newest pose's rotation (F in G): the tool's lever arm
@@ -215,14 +214,17 @@ class PdCompensatorNode(RefusalCounter, Node):
         # waited behind its per-wake-up bookkeeping and the 100 Hz watchdog, about a millisecond per hop here.
         # ... and serialized: read with struct, corrections written the same way (core/wire/pose_cdr.py)
         self.direct_input = DirectInput(None, self.context, tick=self._watchdog)
-        if local is not None:
+        if local is not None and local.carries("pose_with_covariance"):
             local.take(self.resolve_topic_name("pose_with_covariance"), self._on_pose)
         else:
             pose_sub = self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose,
                                                 LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
             self.direct_input.add(pose_sub, self._on_pose)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
-        if v["period_clock"] == "robot_state":  # the controller's clock: taken as it comes, like the poses
+        on_state = self._on_controller_period if v["period_clock"] == "robot_state" else self._on_robot_state
+        if local is not None and local.carries("robot_state"):  # composed with the bridge: in its socket thread
+            local.take(self.resolve_topic_name("robot_state"), on_state)
+        elif v["period_clock"] == "robot_state":  # the controller's clock: taken as it comes, like the poses
             state_sub = self.create_subscription(PoseStamped, "robot_state", self._on_controller_period,
                                                  LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
             self.direct_input.add(state_sub, self._on_controller_period)
@@ -294,7 +296,7 @@ class PdCompensatorNode(RefusalCounter, Node):
                 return
             self.reference = reference
 
-    def _on_robot_state(self, _msg: PoseStamped) -> None:
+    def _on_robot_state(self, _msg) -> None:
         self.robot_heard = time.monotonic()
 
     def _on_controller_period(self, _serialized: bytes) -> None:

@@ -186,7 +186,7 @@ class PoseEstimatorNode(Node):
         self.stats_lock = threading.Lock()  # callbacks may run on other executors' threads
         self.window = self._new_window(time.monotonic())
         self.direct_input = DirectInput(None, self.context)
-        if local is not None:
+        if local is not None and local.carries("profile"):
             local.take(self.resolve_topic_name("profile"), self._on_profile)
         else:
             self._subscribe_profiles()

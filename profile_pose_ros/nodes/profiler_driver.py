@@ -179,6 +179,7 @@ class ProfilerDriverNode(Node):
                            "trigger_count_offset": link.matcher.offset if link.matcher.offset is not None else "none",
                            "mcu_clock_drift_ppm": trigger.clock.drift_ppm,
                            "mcu_clock": "converged" if trigger.clock.converged else "converging",
+                           "mcu_clock_resets": trigger.clock.resets, "mcu_clock_last_reset": trigger.clock.last_reset,
                            "stamp_error_bound_us": trigger.clock.error_bound * 1e6,
                            "serial_latency_us": trigger.latency * 1e6,
                            "fastest_ping_round_trip_us": trigger.fastest_round_trip * 1e6,

@@ -26,7 +26,7 @@ NAME = "profiler_estimator"
 
 
 def main(args=None) -> int:
-    local = LocalTopics()
+    local = LocalTopics(carried=("profile",))
     # The estimator first, so that the driver's first profile finds it; the driver is destroyed first (no more
     # profiles), then the estimator.
     factories = [lambda: PoseEstimatorNode(local=local), lambda: ProfilerDriverNode(local=local)]

@@ -237,7 +237,7 @@ class SimCellNode(Node):
                   "profiler_connections": p.server.connections, "profiler_closes": p.closes,
                   "mcu_connections": m.server.connections, "mcu_lines": m.lines_sent,
                   "mcu_closes": m.closes, "mcu_reboots": m.reboots,
-                  "profiler_port": p.port, "mcu_url": m.url, **faults}
+                  "profiler_port": p.port, "mcu_url": m.url, **faults, **c.frame_latency.report()}
         if self.robot is not None:
             values.update(self.robot.report())
         self.diagnostics_pub.publish(diagnostic_array(self, "cell",

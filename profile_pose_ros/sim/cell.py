@@ -17,6 +17,7 @@ import numpy as np
 from ..core.model.gauge import Gauge
 from ..core.model.render import DEFAULT_PROFILER, ProfilerModel, render_profile
 from ..core.compiled.render_kernel import visible_depth_fast
+from ..core.timing.latency_window import LatencyWindow
 from .motion import MotionSource
 from .profiler_device import ProfilerDevice
 from .trigger_mcu import TriggerMcu
@@ -61,7 +62,8 @@ class SimCell:
         self.rng = np.random.default_rng(seed)
         self.start_ns = time.monotonic_ns()
         self.signals = 0
-        self.late_signals = 0  # signals the clock could not fire on time (this machine overloaded)
+        self.frame_latency = LatencyWindow("trigger_to_frame_sent_ms")
+        self.late_signals = 0  # the trigger clock's deadlines skipped, a period or more late (this machine overloaded)
         self._lock = threading.Lock()
         self._clock: threading.Thread | None = None
         self._stop = threading.Event()
@@ -94,6 +96,9 @@ class SimCell:
                                     depth=visible_depth_fast)
             status = self.profiler.trigger(device_us, self.model.x_start, self.model.x_pitch, points[:, 1],
                                            final=final)
+            # the simulator's own share of every latency the loop measures from the trigger: a real profiler's
+            # is its exposure and transfer, fixed
+            self.frame_latency.add((time.monotonic_ns() - mono) * 1e-9)
             truth = Truth(self.profiler.trigger_count, seq, wall, rotation, translation, status)
         if self.on_truth is not None:
             self.on_truth(truth)
@@ -111,6 +116,11 @@ class SimCell:
         self._clock.start()
 
     def _clock_loop(self, rate_hz: float, max_triggers: int) -> None:
+        """The profiler's own trigger clock. A device fires when it fires: each edge is taken (MCU stamp, truth,
+        the arm's pose) at the time this thread gets to it, and deadlines it missed by a whole period are
+        skipped (late_signals), not fired late in a batch with past stamps. Such a batch put stamps older than
+        the PONGs the MCU had answered meanwhile onto the serial line, which a real MCU never does, and its
+        lateness counted as the loop's latency."""
         period = 1.0 / rate_hz
         deadline = time.monotonic() + period
         fired = 0
@@ -121,9 +131,11 @@ class SimCell:
                 if self._stop.is_set():
                     return
             elif delay < -period:
-                self.late_signals += 1
+                missed = int(-delay / period)
+                self.late_signals += missed
+                deadline += missed * period
             final = max_triggers > 0 and fired + 1 >= max_triggers
-            if self.robot_signal(int(deadline * 1e9), final=final) is not None:
+            if self.robot_signal(final=final) is not None:
                 fired += 1
                 if final:
                     return

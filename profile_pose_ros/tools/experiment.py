@@ -164,14 +164,15 @@ class Experiment:
                  bag: Path | None = None, gauge_file: str = "", estimator: dict | None = None,
                  realtime_priority: int = 0, composed: bool = False, bridge: dict | None = None,
                  sim_truth: dict | None = None, calibrate: Path | None = None, first_motion: bool = False,
-                 estimator_in_driver: bool = False) -> None:
+                 estimator_in_driver: bool = False, compensator_in_bridge: bool = False) -> None:
         """rate_hz: the controller's (83.333 or 250), which also triggers the profiler unless
         profile_rate_hz asks for a profiler clock of its own (e.g. 1 kHz); bag: record every topic there;
         gauge_file: the cell's gauge (sim_cell renders it, the estimator fits it; empty: the shipped one);
         estimator, compensator: parameters for those nodes beyond the defaults; realtime_priority: the four
         loop nodes' (nodes/process_tuning.py; the simulator and the recorder stay under the normal scheduler);
         composed: the four loop nodes in one cell_container process instead of four; estimator_in_driver:
-        driver and estimator in one profiler_estimator process (the compensator and the bridge their own); sim_truth: sim_cell's
+        driver and estimator in one profiler_estimator process; compensator_in_bridge: compensator and bridge in one
+        compensator_bridge process; sim_truth: sim_cell's
         hidden placement (gauge_in_base, profiler_in_flange); calibrate: measure it first with
         profile_pose_calibrate (its files go there) and give the compensator the result; first_motion: the
         compensator's first-motion check before the loop closes (off for the tools that measure other things)."""
@@ -230,8 +231,12 @@ class Experiment:
                 print(f"  calibrated (profile_pose_calibrate, files in {calibrate}): gauge_in_base "
                       f"{np.round(mounting['gauge_in_base'], 5).tolist()}, profiler_in_tool "
                       f"{np.round(mounting['profiler_in_tool'], 5).tolist()}", flush=True)
-            for executable in ("pd_compensator", "motoplus_bridge"):
-                graph.start(executable, nodes[executable])
+            if compensator_in_bridge:
+                graph.start_composed({name: nodes[name] for name in ("pd_compensator", "motoplus_bridge")},
+                                     name="compensator_bridge")
+            else:
+                for executable in ("pd_compensator", "motoplus_bridge"):
+                    graph.start(executable, nodes[executable])
         self.first_motion = first_motion
         # R_BG as the loop knows it (its gauge_in_base): steps and responses are along the robot's base axes,
         # R_BG^T u in the gauge frame the poses are in

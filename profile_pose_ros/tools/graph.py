@@ -23,6 +23,7 @@ MODULES = {
     "motoplus_bridge": "profile_pose_ros.nodes.motoplus_bridge",
     "cell_container": "profile_pose_ros.nodes.cell_container",
     "profiler_estimator": "profile_pose_ros.nodes.profiler_estimator",
+    "compensator_bridge": "profile_pose_ros.nodes.compensator_bridge",
     "bag_recorder": "profile_pose_ros.nodes.bag_recorder",
     "bag_player": "profile_pose_ros.nodes.bag_player",
 }
@@ -195,7 +196,7 @@ class Graph:
 
     def start_composed(self, node_params: dict[str, dict], name: str = "cell_container") -> subprocess.Popen:
         """A container of several nodes (cell_container: the loop's four; profiler_estimator: driver and
-        estimator), each node with its own parameters: a file with one block per node name, since `-p` would give every node the same value (`port` is
+        estimator; compensator_bridge), each node with its own parameters: a file with one block per node name, since `-p` would give every node the same value (`port` is
         the driver's profiler port and the bridge's controller port)."""
         prepare_kernel()
         command = self._ros_command(name)

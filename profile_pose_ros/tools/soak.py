@@ -43,7 +43,7 @@ LEVELS = {0: "OK", 1: "WARN", 2: "ERROR", 3: "STALE"}
 class Soak:
     def __init__(self, graph: Graph, profile_rate_hz: float, refine_model: str, realtime_priority: int = 0,
                  composed: bool = False, control_law: str = CELL_CONTROL_LAW, estimator_in_driver: bool = False,
-                 compensator: dict | None = None) -> None:
+                 compensator: dict | None = None, compensator_in_bridge: bool = False) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
 
         self.graph = graph
@@ -54,6 +54,7 @@ class Soak:
                               profile_rate_hz=profile_rate_hz,  # sim_cell's own clock, which the soak can pause
                               estimator={"max_profile_age": 0.05}, realtime_priority=realtime_priority,
                               composed=composed, estimator_in_driver=estimator_in_driver,
+                              compensator_in_bridge=compensator_in_bridge,
                               compensator={"control_law": control_law, **(compensator or {})})
         self.latency = NodeReports(graph)
         self.not_ok: dict[tuple[str, str, str], list] = {}  # (status, level, kind) -> [count, first, last, example]
@@ -120,7 +121,7 @@ class Soak:
         # controller's periods from a report made armed
         self.exp.bridge(arm=True)
         self.exp.wait(1.0)
-        armed = self.counters()
+        armed, armed_at = self.counters(), time.monotonic()
         self.latency.recording = True
         intervals, sign = [], 1.0
         start = before = time.monotonic()
@@ -149,6 +150,9 @@ class Soak:
             counts_before, cpu_before, before = counts, cpu, end
         # before the clock stops: the bridge's periods after it would go unanswered by design
         periods = {k: counts[k] - armed[k] for k in ("armed_periods", "answered_periods")}
+        # every period of the controller's clock counts, armed or not: a session the bridge ended is a loop the
+        # arm does not feel
+        periods["controller_periods"] = round((time.monotonic() - armed_at) * control_hz(self.rate_hz))
         self._clock(False)
         last = self._settled_counters()
         self.exp.bridge(arm=False)
@@ -185,7 +189,7 @@ def verdict(result: dict) -> dict:
     growth = {name: rows[-1]["rss_mb"][name] - rows[0]["rss_mb"][name] for name in rows[-1]["rss_mb"]
               if name in rows[0]["rss_mb"]}
     delivered = used / triggered if triggered else 0.0
-    answered = totals["answered_periods"] / totals["armed_periods"] if totals["armed_periods"] else 0.0
+    answered = totals["answered_periods"] / totals["controller_periods"] if totals["controller_periods"] else 0.0
     p99 = max(r["increment_p99_ms"] for r in rows)  # each interval's worst window: bounds the run's p99
     p99_max = increment_p99_max_ms(result["control_hz"])
     cpu = float(np.mean([loop_cpu_percent(r) for r in rows]))
@@ -200,7 +204,8 @@ def verdict(result: dict) -> dict:
               f"loop processes <= {LOOP_CPU_MAX:g} % of a core": cpu <= LOOP_CPU_MAX,
               f"memory growth <= {RSS_GROWTH_MAX_MB:g} MB": all(g <= RSS_GROWTH_MAX_MB for g in growth.values())}
     return {"crashes": result["crashes"], "triggered": triggered, "poses_used": used, "delivered": delivered,
-            "armed_periods": totals["armed_periods"], "answered_periods": totals["answered_periods"],
+            "controller_periods": totals["controller_periods"], "armed_periods": totals["armed_periods"],
+            "answered_periods": totals["answered_periods"],
             "answered": answered, "increment_p99_ms": p99, "loop_cpu_percent": cpu,
             "poses_driving_the_law": used - totals["within_a_period"],
             "achieved_rate_hz": triggered / (result["minutes"] * 60.0), "lost": lost,
@@ -209,12 +214,13 @@ def verdict(result: dict) -> dict:
 
 def run_soak(minutes: float, rate_hz: float, interval_s: float, refine_model: str, out,
              realtime_priority: int = 0, composed: bool = False, control_law: str = CELL_CONTROL_LAW,
-             estimator_in_driver: bool = False, compensator: dict | None = None) -> dict:
+             estimator_in_driver: bool = False, compensator: dict | None = None,
+             compensator_in_bridge: bool = False) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_soak")
     crashes: list[str] = []
     try:
         s = Soak(graph, rate_hz, refine_model, realtime_priority, composed, control_law, estimator_in_driver,
-                 compensator)
+                 compensator, compensator_in_bridge)
         try:
             result = s.run(minutes * 60.0, interval_s)
         except RuntimeError as exc:  # Graph.spin_until: a node process died
@@ -224,6 +230,7 @@ def run_soak(minutes: float, rate_hz: float, interval_s: float, refine_model: st
         graph.close()
     result.update({"minutes": minutes, "rate_hz": rate_hz, "realtime_priority": realtime_priority,
                    "control_hz": control_hz(rate_hz), "composed": composed, "estimator_in_driver": estimator_in_driver,
+                   "compensator_in_bridge": compensator_in_bridge,
                    "control_law": control_law, "crashes": crashes})
     result["verdict"] = verdict(result) if result["intervals"] else {"ok": False, "crashes": crashes}
     return result
@@ -253,7 +260,8 @@ def print_report(result: dict) -> None:
         print("every diagnostic OK throughout")
     v = result["verdict"]
     if "checks" in v:
-        print(f"controller periods armed {v['armed_periods']}, answered by a correction from a pose at most one period "
+        print(f"controller periods {v['controller_periods']}, armed {v['armed_periods']}, answered by a correction from a "
+              f"pose at most one period "
               f"old {v['answered_periods']} ({100 * v['answered']:.3f} %); trigger -> increment p99 (worst window) "
               f"{v['increment_p99_ms']:.2f} ms; loop processes {v['loop_cpu_percent']:.0f} % of a core; poses used by "
               f"the compensator {v['poses_used']} of {v['triggered']} triggered ({100 * v['delivered']:.3f} %); "
@@ -284,6 +292,8 @@ def main(argv=None) -> int:
                         help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
     parser.add_argument("--estimator-in-driver", action="store_true",
                         help="driver and estimator in one profiler_estimator process (nodes/profiler_estimator.py)")
+    parser.add_argument("--compensator-in-bridge", action="store_true",
+                        help="compensator and bridge in one compensator_bridge process (nodes/compensator_bridge.py)")
     add_period_clock_option(parser)
     add_control_law_option(parser)
     parser.add_argument("--out", default="runs")
@@ -292,7 +302,8 @@ def main(argv=None) -> int:
     print(f"soak: the closed loop for {args.minutes:g} min at {args.rate:g} Hz, {args.control_law} law (logs in "
           f"{out / 'logs'})", flush=True)
     result = run_soak(args.minutes, args.rate, args.interval, args.refine_model, out, args.realtime_priority,
-                      args.composed, args.control_law, args.estimator_in_driver, {"period_clock": args.period_clock})
+                      args.composed, args.control_law, args.estimator_in_driver, {"period_clock": args.period_clock},
+                      args.compensator_in_bridge)
     print_report(result)
     write_json(out / "soak.json", result)
     print(f"results: {out / 'soak.json'}")

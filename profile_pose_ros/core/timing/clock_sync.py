@@ -119,6 +119,7 @@ class ClockMap:
         self._fitted_at = -np.inf
         self._forget_bounds()
         self.resets = 0
+        self.last_reset = "none"  # why the map last started over
         self.bounds_refused = 0
         self.bounds_contradicted = 0
 
@@ -127,7 +128,8 @@ class ClockMap:
         self._late_anchor = np.inf  # min over the offset's bounded samples of (bound - slope_error * device)
         self._offset_set_at = np.inf  # device time of the sample that set the offset
 
-    def reset(self) -> None:
+    def reset(self, reason: str = "") -> None:
+        self.last_reset = reason
         self._samples.clear()
         self._bounded.clear()
         self._ref = self._fit = None
@@ -171,7 +173,8 @@ class ClockMap:
             self._ref = (device_s, host_s)
         if self._fit is not None and (host_s < self.to_host(device_s) - self.jump_s
                                       or device_s < self._ref[0] + self._samples.last_device() - self.jump_s):
-            self.reset()  # the device restarted or its clock was set: start over
+            self.reset("a line far earlier than the map" if host_s < self.to_host(device_s) - self.jump_s
+                       else "the device time went back")  # the device restarted or its clock was set: start over
             self._ref = (device_s, host_s)
         d, h = device_s - self._ref[0], host_s - self._ref[1]
         if delay_bound < float("inf") and self._fit is not None and (
