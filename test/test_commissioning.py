@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from profile_pose_ros.core import Gauge, estimate_pose, render_profile
 from profile_pose_ros.core.commissioning.first_motion import FirstMotionCheck, ProbeDesign, judge
@@ -193,3 +195,16 @@ def test_controller_angles_round_trip_and_the_sim_reports_its_tool() -> None:
     tool = motion.tool_pose(arm.position)
     assert np.allclose(rotation_from_controller_angles(reported[3:]), tool.rotation)
     assert np.allclose(reported[:3], tool.translation)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(-np.pi, np.pi), st.floats(-1.5, 1.5), st.floats(-np.pi, np.pi))
+def test_the_written_out_controller_angles_are_scipys_xyz_euler_angles(rx: float, ry: float, rz: float) -> None:
+    from scipy.spatial.transform import Rotation
+
+    angles = np.array([rx, ry, rz])
+    expected = Rotation.from_euler("xyz", angles).as_matrix()
+    np.testing.assert_allclose(rotation_from_controller_angles(angles), expected, atol=1e-12)
+    np.testing.assert_allclose(rotation_from_controller_angles(controller_angles(expected)), expected, atol=1e-9)
+    apart = controller_angles(expected) - Rotation.from_matrix(expected).as_euler("xyz")
+    np.testing.assert_allclose(np.angle(np.exp(1j * apart)), 0.0, atol=1e-9)  # the same angles, up to 2 pi

@@ -131,6 +131,8 @@ def test_the_latency_budget_reads_every_stage_from_the_nodes(tmp_path, composed:
         assert s["n"] > 100, (name, s)  # ~250 profiles in 3 s, each timed at every stage
         assert 0 < s["median"] <= s["p99"] <= s["max"] < 1000, (name, s)
     assert stages["profile"]["median"] < stages["pose"]["median"] < stages["correction"]["median"]
+    periods = result["periods"]  # what the arm feels: the controller's periods, and those answered fresh
+    assert periods["controller"] == 250 and 0 < periods["answered"] <= periods["armed"] <= periods["controller"] + 50
 
 
 def test_string_parameters_stay_strings_on_the_command_line() -> None:

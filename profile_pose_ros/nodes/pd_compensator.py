@@ -76,7 +76,7 @@ PARAMETERS = [
     Param("control_law", "pd", "pd: the PD law behind the input shaper (sends nothing at the resonance, adds no "
           "damping); modal: a Kalman filter on a model of the arm's mode and the loop's delays with an LQR "
           "feedback that damps the mode (docs/robot_side.md). modal: one pose per control period drives it; a "
-          "faster profiler's other poses are not used.",
+          "faster profiler's other poses are left out, or fused with it (period_clock robot_state).",
           read_only=True),
     Param("modal_frequency", [10.0] * 6, "modal: the arm mode's natural frequency per axis (Hz), as the open-loop "
           "step shows it (profile_pose experiment --modes open).", read_only=True),
@@ -304,6 +304,9 @@ class PdCompensatorNode(RefusalCounter, Node):
         with self._lock:
             self.robot_heard = time.monotonic()
             poses, self.period_poses = self.period_poses, []
+            # fresh ones only: after a pause of the STATEs the buffer may hold poses older than max_pose_age
+            oldest = time.time() - self.values["max_pose_age"]
+            poses = [pose for pose in poses if pose.stamp >= oldest]
             if not poses or self.loop_refused or self.robot_heard > self.pose_fresh_until:
                 return  # nothing new, or stale: the watchdog's zeros
             velocity = self.modal.x[:, 1] if self.modal is not None else self.filter.velocity

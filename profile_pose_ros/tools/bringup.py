@@ -5,7 +5,8 @@ corrections flow; Ctrl-C (or SIGTERM) stops them bridge first (it sends STOP), c
 process behind. Each node is this process's own child: the installed executable the ament index finds
 (what `ros2 run` would run, without its wrapper, which would swallow the stop), the venv's console
 script otherwise. --namespace puts a second cell beside the first without cross-talk.
---composed runs the four nodes in one cell_container process (nodes/cell_container.py).
+--composed runs the four nodes in one cell_container process (nodes/cell_container.py); --pairs in two,
+profiler_estimator and compensator_bridge (a profiler faster than the controller: docs/user_guide.md).
 """
 from __future__ import annotations
 
@@ -52,8 +53,8 @@ def discovery_range(requested: str | None, environ: dict) -> str:
 class Bringup:
     def __init__(self, out: Path, params_file: Path | list[Path], namespace: str = "", hardware: bool = False,
                  record: bool = False, domain_id: int | None = None, composed: bool = False,
-                 frame_prefix: str = "") -> None:
-        self.out, self.hardware, self.record, self.composed = out, hardware, record, composed
+                 frame_prefix: str = "", pairs: bool = False) -> None:
+        self.out, self.hardware, self.record, self.composed, self.pairs = out, hardware, record, composed, pairs
         self.frames = prefixed_frames(frame_prefix)
         self.graph = Graph(out, domain_id=domain_id, client_name="bringup", namespace=namespace,
                            params_file=params_file)
@@ -73,6 +74,9 @@ class Bringup:
         params = {node: {**own, **self.frames.get(node, {})} for node, own in zip(NODES, (driver, {}, {}, bridge))}
         if self.composed:
             g.start_composed(params)
+        elif self.pairs:  # the bridge's process last: stopped first (STOP)
+            g.start_composed({n: params[n] for n in NODES[:2]}, name="profiler_estimator")
+            g.start_composed({n: params[n] for n in NODES[2:]}, name="compensator_bridge")
         else:
             for name, node_params in params.items():
                 g.start(name, node_params)
@@ -136,6 +140,8 @@ def main(argv=None) -> int:
                         "cell2/base (overrides the parameter file's frame names)")
     parser.add_argument("--record", action="store_true", help="also record the cell's topics (bag_recorder)")
     parser.add_argument("--composed", action="store_true", help="the four nodes in one cell_container process")
+    parser.add_argument("--pairs", action="store_true", help="the four nodes in two processes: profiler_estimator "
+                        "and compensator_bridge (a profiler faster than the controller)")
     parser.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default: the environment's, else 0)")
     parser.add_argument("--discovery-range", type=str.upper, choices=DISCOVERY_RANGES,
                         help="ROS_AUTOMATIC_DISCOVERY_RANGE for every node (default: the environment's, else "
@@ -151,8 +157,10 @@ def main(argv=None) -> int:
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = discovery = discovery_range(args.discovery_range, os.environ)
     out = run_dir(args.out, f"bringup{'-' + args.namespace.strip('/') if args.namespace else ''}")
     stop = StopRequest().install()
+    if args.composed and args.pairs:
+        parser.error("--composed and --pairs are two layouts: choose one")
     cell = Bringup(out, params_file, args.namespace, args.hardware, args.record, domain_id, args.composed,
-                   args.frame_prefix)
+                   args.frame_prefix, args.pairs)
     code = 0
     try:
         cell.start()

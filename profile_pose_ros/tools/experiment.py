@@ -130,10 +130,23 @@ def loop_delay(period_s: float, answer_wait: float, controller_clock: bool = Fal
             + (REPLY_POSE_AGE_S if controller_clock else 0.0))
 
 
-def add_period_clock_option(parser) -> None:
+def add_layout_options(parser) -> None:
+    """How the loop's nodes are laid out in processes, and what clocks the compensator: shared by the tools."""
+    parser.add_argument("--composed", action="store_true",
+                        help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
+    parser.add_argument("--estimator-in-driver", action="store_true",
+                        help="driver and estimator in one profiler_estimator process (nodes/profiler_estimator.py)")
+    parser.add_argument("--compensator-in-bridge", action="store_true",
+                        help="compensator and bridge in one compensator_bridge process (nodes/compensator_bridge.py)")
     parser.add_argument("--period-clock", choices=["pose", "robot_state"], default="pose",
                         help="pd_compensator's period_clock: robot_state fuses a faster profiler's poses once a "
                         "controller period and answers the controller's STATE (the bridge's await_reply set with it)")
+
+
+def layout_from(args) -> dict:
+    """Experiment's layout arguments from add_layout_options' options."""
+    return {"composed": args.composed, "estimator_in_driver": args.estimator_in_driver,
+            "compensator_in_bridge": args.compensator_in_bridge}
 
 
 def controller_clocked(compensator: dict | None) -> bool:
@@ -556,14 +569,16 @@ def run(rate_hz: float, repeats: int, sizes: list[float], axes: list[str], noise
         compensator: dict | None = None, modes: tuple[str, ...] = ("open", "closed"),
         refine_model: str = "dense", bag: Path | None = None, gauge_file: str = "", composed: bool = False,
         profile_rate_hz: float | None = None, bridge: dict | None = None, sim_truth: dict | None = None,
-        calibrate: bool = False, first_motion: bool = True) -> dict:
+        calibrate: bool = False, first_motion: bool = True, estimator_in_driver: bool = False,
+        compensator_in_bridge: bool = False) -> dict:
     graph = Graph(out / "logs", client_name="profile_pose_experiment")
     runs: list[dict] = []
     first_motion_verdict = "off"
     try:
         exp = Experiment(graph, rate_hz, noise, seed, compensator, refine_model, bag=bag, gauge_file=gauge_file,
                          composed=composed, profile_rate_hz=profile_rate_hz, bridge=bridge, sim_truth=sim_truth,
-                         calibrate=out / "calibration" if calibrate else None, first_motion=first_motion)
+                         calibrate=out / "calibration" if calibrate else None, first_motion=first_motion,
+                         estimator_in_driver=estimator_in_driver, compensator_in_bridge=compensator_in_bridge)
         exp.start()
         for mode in modes:
             exp.bridge(arm=(mode == "closed"))
@@ -609,8 +624,10 @@ def recorded_step(exp: Experiment, closed: bool, direction: np.ndarray, size: fl
 def loop_health(exp: Experiment) -> str:
     """How often the loop had nothing fresh to send: over the whole run (open-loop periods send nothing)."""
     bridge = {key: exp.value("motoplus_bridge", key, "?")
-              for key in ("corrections", "zero_corrections", "late_answers", "lost_increments")}
-    text = (f"loop: {bridge['corrections']} corrections sent, {bridge['zero_corrections']} of them zero (no fresh "
+              for key in ("corrections", "zero_corrections", "late_answers", "lost_increments",
+                          "answered_within_a_period")}
+    text = (f"loop: {bridge['corrections']} corrections sent (armed periods), {bridge['answered_within_a_period']} "
+            f"of them from a pose at most one period old when it left, {bridge['zero_corrections']} zero (no fresh "
             f"correction; {bridge['late_answers']} answers too late to use); the controller replaced "
             f"{exp.value('sim_cell', 'robot_corrections_replaced', '?')} not yet applied by a newer one (the bridge "
             f"counted {bridge['lost_increments']} moving ones lost from the controller's STATEs)")
@@ -654,8 +671,7 @@ def main(argv=None) -> int:
                         "config/gauge_designed_n6.yaml is ~4.5x better determined over the same motion)")
     parser.add_argument("--no-bag", action="store_true", help="do not record the run (by default every topic "
                         "goes to <run>/bag, MCAP with zstd chunks)")
-    parser.add_argument("--composed", action="store_true",
-                        help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
+    add_layout_options(parser)
     parser.add_argument("--hidden-placement", type=int, metavar="SEED", help="sim_cell's gauge and profiler placed "
                         "where the loop does not know (random, from SEED, in profile_pose calibration-study's ranges)")
     parser.add_argument("--sim-truth", type=float, nargs=12, metavar="V", help="sim_cell's gauge_in_base and "
@@ -670,6 +686,7 @@ def main(argv=None) -> int:
     bag = None if args.no_bag else out / "bag"
     compensator = {k: list(v) for k, v in (("kp", args.kp), ("kd", args.kd), ("acceleration_psd", args.psd)) if v}
     compensator["control_law"] = args.control_law
+    compensator["period_clock"] = args.period_clock
     if args.compensator_params:
         compensator.update(yaml.safe_load(args.compensator_params.read_text())["pd_compensator"]["ros__parameters"])
     if args.reference_shaping:
@@ -694,7 +711,7 @@ def main(argv=None) -> int:
           flush=True)
     result = run(args.rate, args.repeats, args.sizes, args.axes, args.noise, out, compensator=compensator,
                  modes=tuple(args.modes), refine_model=args.refine_model, bag=bag, gauge_file=args.gauge,
-                 composed=args.composed, profile_rate_hz=args.profile_rate,
+                 **layout_from(args), profile_rate_hz=args.profile_rate,
                  bridge={"answer_wait": args.answer_wait} if args.answer_wait is not None else None,
                  sim_truth=sim_truth, calibrate=args.calibrate, first_motion=not args.no_first_motion_check)
     if len(args.modes) < 2:  # nothing to compare: the runs, and how fast they got there

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..core.timing.latency_window import pooled
 from .config_files import CELL_CONTROL_LAW, add_control_law_option
-from .experiment import Experiment
+from .experiment import Experiment, add_layout_options, layout_from
 from .graph import Graph, cpu_percent
 from .report import run_dir, summary, table, write_json
 
@@ -73,7 +73,8 @@ class NodeReports:
 
 
 def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float, skip: tuple[str, ...] = (),
-            observer: str = "nodes", composed: bool = False, control_law: str = CELL_CONTROL_LAW) -> dict:
+            observer: str = "nodes", composed: bool = False, control_law: str = CELL_CONTROL_LAW,
+            estimator_in_driver: bool = False, compensator_in_bridge: bool = False, period_clock: str = "pose") -> dict:
     from rclpy.qos import qos_profile_sensor_data
 
     control_hz = 83.333 if rate_hz < 200 else 250.0
@@ -84,7 +85,8 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
     try:
         exp = Experiment(graph, control_hz, noise, refine_model=refine_model,
                          profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None, composed=composed,
-                         compensator={"control_law": control_law})
+                         estimator_in_driver=estimator_in_driver, compensator_in_bridge=compensator_in_bridge,
+                         compensator={"control_law": control_law, "period_clock": period_clock})
         for name, topic, msgtype in STAGES:
             if name in skip or observer != "dds":
                 continue
@@ -98,11 +100,14 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
         exp.stop_streams()
         exp.wait(1.0)  # the nodes' next reports start windows that hold only the measured time
         cpu_before = graph.cpu_seconds()
+        periods_before = answered_periods(exp)
         recording[0] = reports.recording = True
         for _ in range(int(round(seconds / 0.5))):
             exp.reference(np.zeros(3))  # again and again: a reference lost before discovery matched would
             exp.wait(0.5)               # leave the compensator sending zeros
         recording[0] = reports.recording = False
+        periods = {k: v - periods_before[k] for k, v in answered_periods(exp).items()}
+        periods["controller"] = round(seconds * control_hz)
         cpu = graph.cpu_seconds()
         cpu_share = cpu_percent(cpu_before, cpu, seconds)
         diagnostics = {k: dict(v) for k, v in exp.diagnostics.items()}
@@ -114,7 +119,15 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
     return {"rate_hz": rate_hz, "control_hz": control_hz, "seconds": seconds, "refine_model": refine_model,
             "control_law": control_law,
             "observer": observer, "composed": composed, "stages_ms": stages, "cpu_percent": cpu_share,
+            "periods": periods,
             "diagnostics": diagnostics}
+
+
+def answered_periods(exp: Experiment) -> dict[str, int]:
+    """The bridge's armed controller periods so far, and those answered by a correction from a pose at most one
+    period old when the increment left (its newest report)."""
+    return {"armed": int(exp.value("motoplus_bridge", "armed_periods", "0") or 0),
+            "answered": int(exp.value("motoplus_bridge", "answered_within_a_period", "0") or 0)}
 
 
 def print_table(results: list[dict]) -> None:
@@ -132,6 +145,10 @@ def print_table(results: list[dict]) -> None:
                 + (" (timed by the nodes: median of the windows' medians, p99 the worst window's)"
                    if observer == "nodes" else " (DDS publish times seen by this client)")))
     for r in results:
+        p = r["periods"]
+        print(f"controller periods at {r['rate_hz']:g} Hz: {p['controller']}, armed {p['armed']}, answered by a "
+              f"correction from a pose at most one period old {p['answered']} "
+              f"({100.0 * p['answered'] / max(p['controller'], 1):.1f} %)")
         print(f"CPU at {r['rate_hz']:g} Hz (% of one core): "
               + ", ".join(f"{name} {value:.0f}" for name, value in r["cpu_percent"].items()))
 
@@ -146,8 +163,7 @@ def main(argv=None) -> int:
                         help="nodes: each node's own timing, from its diagnostics (no load from this client); "
                              "dds: this client subscribes to every stage")
     parser.add_argument("--skip", nargs="*", default=[], help="stages not to subscribe to (dds observer)")
-    parser.add_argument("--composed", action="store_true",
-                        help="the four loop nodes in one cell_container process (nodes/local_topics.py)")
+    add_layout_options(parser)
     add_control_law_option(parser)
     parser.add_argument("--out", default="runs")
     args = parser.parse_args(argv)
@@ -156,7 +172,8 @@ def main(argv=None) -> int:
     for rate in args.rates:
         print(f"measuring at {rate:g} Hz for {args.seconds:g} s, {args.control_law} law (logs in {out})", flush=True)
         results.append(measure(rate, args.seconds, out, args.refine_model, args.noise, tuple(args.skip),
-                               args.observer, args.composed, args.control_law))
+                               args.observer, control_law=args.control_law, period_clock=args.period_clock,
+                               **layout_from(args)))
     print_table(results)
     write_json(out / "latency.json", {"results": results})
     print(f"results: {out / 'latency.json'}")

@@ -7,6 +7,7 @@ rotation vector (rad).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,10 +54,21 @@ def difference(a: Transform, b: Transform) -> np.ndarray:
 
 def rotation_from_controller_angles(angles) -> np.ndarray:
     """A Yaskawa controller's Rx, Ry, Rz (rad): turns about the fixed base axes x, then y, then z,
-    R = Rz Ry Rx (as the pendant shows a Cartesian pose)."""
-    return Rotation.from_euler("xyz", np.asarray(angles, dtype=float)).as_matrix()
+    R = Rz Ry Rx (as the pendant shows a Cartesian pose). Written out: the bridge turns every STATE's angles
+    into a rotation, and a scipy Rotation costs tens of microseconds there."""
+    a, b, c = (float(v) for v in angles)
+    ca, sa, cb, sb, cc, sc = math.cos(a), math.sin(a), math.cos(b), math.sin(b), math.cos(c), math.sin(c)
+    return np.array([[cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa],
+                     [sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa],
+                     [-sb, cb * sa, cb * ca]])
 
 
 def controller_angles(rotation: np.ndarray) -> np.ndarray:
-    """The inverse of rotation_from_controller_angles (rad, each in (-pi, pi])."""
-    return Rotation.from_matrix(rotation).as_euler("xyz")
+    """The inverse of rotation_from_controller_angles (rad, each in (-pi, pi]); written out for sim_cell's
+    controller, which reports its pose every period. At Ry = +-90 deg only Rx - Rz (or Rx + Rz) is defined:
+    scipy's convention decides there."""
+    r = np.asarray(rotation, dtype=float)
+    if abs(r[2, 0]) > 1.0 - 1e-9:
+        return Rotation.from_matrix(r).as_euler("xyz")
+    return np.array([math.atan2(r[2, 1], r[2, 2]), math.atan2(-r[2, 0], math.hypot(r[2, 1], r[2, 2])),
+                     math.atan2(r[1, 0], r[0, 0])])
