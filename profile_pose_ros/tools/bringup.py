@@ -74,12 +74,9 @@ class Bringup:
         params = {node: {**own, **self.frames.get(node, {})} for node, own in zip(NODES, (driver, {}, {}, bridge))}
         if self.composed:
             g.start_composed(params)
-        elif self.pairs:  # the bridge's process last: stopped first (STOP)
-            g.start_composed({n: params[n] for n in NODES[:2]}, name="profiler_estimator")
-            g.start_composed({n: params[n] for n in NODES[2:]}, name="compensator_bridge")
-        else:
-            for name, node_params in params.items():
-                g.start(name, node_params)
+        else:  # the bridge's process last: stopped first (STOP)
+            g.start_nodes({n: params[n] for n in NODES[:2]}, "profiler_estimator" if self.pairs else None)
+            g.start_nodes({n: params[n] for n in NODES[2:]}, "compensator_bridge" if self.pairs else None)
         self._watch_topics()
 
     def _watch_topics(self) -> None:

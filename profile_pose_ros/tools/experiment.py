@@ -231,12 +231,8 @@ class Experiment:
                 raise ValueError("calibrate with the loop's nodes as processes, not composed")
             graph.start_composed(nodes)
         else:
-            if estimator_in_driver:
-                graph.start_composed({name: nodes[name] for name in ("profiler_driver", "pose_estimator")},
-                                     name="profiler_estimator")
-            else:
-                for executable in ("profiler_driver", "pose_estimator"):
-                    graph.start(executable, nodes[executable])
+            graph.start_nodes({name: nodes[name] for name in ("profiler_driver", "pose_estimator")},
+                              "profiler_estimator" if estimator_in_driver else None)
             if calibrate is not None:
                 mounting = calibrated(graph, nodes["motoplus_bridge"], calibrate)
                 compensator.update(mounting)
@@ -244,12 +240,8 @@ class Experiment:
                 print(f"  calibrated (profile_pose_calibrate, files in {calibrate}): gauge_in_base "
                       f"{np.round(mounting['gauge_in_base'], 5).tolist()}, profiler_in_tool "
                       f"{np.round(mounting['profiler_in_tool'], 5).tolist()}", flush=True)
-            if compensator_in_bridge:
-                graph.start_composed({name: nodes[name] for name in ("pd_compensator", "motoplus_bridge")},
-                                     name="compensator_bridge")
-            else:
-                for executable in ("pd_compensator", "motoplus_bridge"):
-                    graph.start(executable, nodes[executable])
+            graph.start_nodes({name: nodes[name] for name in ("pd_compensator", "motoplus_bridge")},
+                              "compensator_bridge" if compensator_in_bridge else None)
         self.first_motion = first_motion
         # R_BG as the loop knows it (its gauge_in_base): steps and responses are along the robot's base axes,
         # R_BG^T u in the gauge frame the poses are in

@@ -209,6 +209,14 @@ class Graph:
                                    sort_keys=False))
         return self._record_and_launch(name, command)
 
+    def start_nodes(self, node_params: dict[str, dict], container: str | None = None) -> None:
+        """Several nodes, each its own process, or all of them in one `container` process (start_composed)."""
+        if container is not None:
+            self.start_composed(node_params, name=container)
+            return
+        for executable, params in node_params.items():
+            self.start(executable, params)
+
     def _params_file_arguments(self) -> list[str]:
         return [argument for path in self.params_files for argument in ("--params-file", str(path))]
 
