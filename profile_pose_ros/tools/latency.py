@@ -148,7 +148,8 @@ def print_table(results: list[dict]) -> None:
         p = r["periods"]
         print(f"controller periods at {r['rate_hz']:g} Hz: {p['controller']}, armed {p['armed']}, answered by a "
               f"correction from a pose at most one period old {p['answered']} "
-              f"({100.0 * p['answered'] / max(p['controller'], 1):.1f} %)")
+              f"({100.0 * p['answered'] / max(p['controller'], p['armed'], 1):.1f} %; the counts are the bridge's "
+              f"0.5 s reports, the periods the measured time's)")
         print(f"CPU at {r['rate_hz']:g} Hz (% of one core): "
               + ", ".join(f"{name} {value:.0f}" for name, value in r["cpu_percent"].items()))
 
