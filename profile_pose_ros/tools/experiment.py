@@ -130,6 +130,12 @@ def loop_delay(period_s: float, answer_wait: float, controller_clock: bool = Fal
             + (REPLY_POSE_AGE_S if controller_clock else 0.0))
 
 
+def control_hz(profile_rate_hz: float) -> float:
+    """The simulated controller's rate beside a profile rate: the paper's 83.3 Hz cell triggers its profiler each
+    period; a faster profiler runs on its own clock beside a 4 ms controller."""
+    return 83.333 if profile_rate_hz < 200 else 250.0
+
+
 def add_layout_options(parser) -> None:
     """How the loop's nodes are laid out in processes, and what clocks the compensator: shared by the tools."""
     parser.add_argument("--composed", action="store_true",

@@ -196,8 +196,9 @@ class Graph:
 
     def start_composed(self, node_params: dict[str, dict], name: str = "cell_container") -> subprocess.Popen:
         """A container of several nodes (cell_container: the loop's four; profiler_estimator: driver and
-        estimator; compensator_bridge), each node with its own parameters: a file with one block per node name, since `-p` would give every node the same value (`port` is
-        the driver's profiler port and the bridge's controller port)."""
+        estimator; compensator_bridge), each node with its own parameters: a file with one block per node name,
+        since `-p` would give every node the same value (`port` is the driver's profiler port and the bridge's
+        controller port)."""
         prepare_kernel()
         command = self._ros_command(name)
         command += self._params_file_arguments()

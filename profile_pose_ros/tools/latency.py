@@ -23,7 +23,7 @@ import numpy as np
 
 from ..core.timing.latency_window import pooled
 from .config_files import CELL_CONTROL_LAW, add_control_law_option
-from .experiment import Experiment, add_layout_options, layout_from
+from .experiment import Experiment, add_layout_options, control_hz, layout_from
 from .graph import Graph, cpu_percent
 from .report import run_dir, summary, table, write_json
 
@@ -77,14 +77,14 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
             estimator_in_driver: bool = False, compensator_in_bridge: bool = False, period_clock: str = "pose") -> dict:
     from rclpy.qos import qos_profile_sensor_data
 
-    control_hz = 83.333 if rate_hz < 200 else 250.0
+    controller_hz = control_hz(rate_hz)
     graph = Graph(out / f"logs_{rate_hz:g}hz", client_name="profile_pose_latency")
     latencies: dict[str, list[float]] = {name: [] for name, *_ in STAGES}
     recording = [False]
     reports = NodeReports(graph)
     try:
-        exp = Experiment(graph, control_hz, noise, refine_model=refine_model,
-                         profile_rate_hz=rate_hz if abs(rate_hz - control_hz) > 1 else None, composed=composed,
+        exp = Experiment(graph, controller_hz, noise, refine_model=refine_model,
+                         profile_rate_hz=rate_hz if abs(rate_hz - controller_hz) > 1 else None, composed=composed,
                          estimator_in_driver=estimator_in_driver, compensator_in_bridge=compensator_in_bridge,
                          compensator={"control_law": control_law, "period_clock": period_clock})
         for name, topic, msgtype in STAGES:
@@ -107,7 +107,7 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
             exp.wait(0.5)               # leave the compensator sending zeros
         recording[0] = reports.recording = False
         periods = {k: v - periods_before[k] for k, v in answered_periods(exp).items()}
-        periods["controller"] = round(seconds * control_hz)
+        periods["controller"] = round(seconds * controller_hz)
         cpu = graph.cpu_seconds()
         cpu_share = cpu_percent(cpu_before, cpu, seconds)
         diagnostics = {k: dict(v) for k, v in exp.diagnostics.items()}
@@ -116,7 +116,7 @@ def measure(rate_hz: float, seconds: float, out, refine_model: str, noise: float
         graph.close()
     stages = ({name: summary(v) for name, v in latencies.items()} if observer == "dds"
               else reports.summaries())
-    return {"rate_hz": rate_hz, "control_hz": control_hz, "seconds": seconds, "refine_model": refine_model,
+    return {"rate_hz": rate_hz, "control_hz": controller_hz, "seconds": seconds, "refine_model": refine_model,
             "control_law": control_law,
             "observer": observer, "composed": composed, "stages_ms": stages, "cpu_percent": cpu_share,
             "periods": periods,

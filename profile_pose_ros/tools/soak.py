@@ -29,9 +29,9 @@ from typing import Callable
 import numpy as np
 
 from .config_files import CELL_CONTROL_LAW, add_control_law_option
-from .experiment import Experiment, add_layout_options
+from .experiment import Experiment, add_layout_options, control_hz, layout_from
 from .graph import CLIENT_CPU, Graph, cpu_percent
-from .latency import NodeReports
+from .latency import NodeReports, answered_periods
 from .processes import memory_kib
 from .report import run_dir, table, write_json
 
@@ -83,10 +83,8 @@ class Soak:
                 "compensator_poses": int(g.diagnostic("pd_compensator", "poses", "0") or 0),
                 # the modal law's: taken, but another pose of the same controller period drove the law
                 "within_a_period": int(g.diagnostic("pd_compensator", "poses_within_a_period", "0") or 0),
-                # what the arm feels: armed controller periods, and those answered by a correction from a pose
-                # at most one period old when the increment left
-                "armed_periods": int(g.diagnostic("motoplus_bridge", "armed_periods", "0") or 0),
-                "answered_periods": int(g.diagnostic("motoplus_bridge", "answered_within_a_period", "0") or 0)}
+                # what the arm feels (armed_periods, answered_periods)
+                **{f"{k}_periods": v for k, v in answered_periods(self.exp).items()}}
 
     def memory_mb(self) -> dict[str, float]:
         out = {}
@@ -167,16 +165,10 @@ class Soak:
             for k, v in sorted(self.not_ok.items(), key=lambda kv: kv[1][1])]}
 
 
-def control_hz(profile_rate_hz: float) -> float:
-    """The simulated controller's rate beside a profile rate: the paper's 83.3 Hz cell triggers its profiler each
-    period; a faster profiler runs on its own clock beside a 4 ms controller."""
-    return 83.333 if profile_rate_hz < 200 else 250.0
-
-
-def increment_p99_max_ms(control_hz: float) -> float:
+def increment_p99_max_ms(controller_hz: float) -> float:
     """The trigger -> increment p99 a soak must meet: 4 ms beside a 4 ms controller, 6 ms at the paper's 83.3 Hz
     (its own data transfer alone took 6.61 ms)."""
-    return 4.0 if control_hz > 200 else 6.0
+    return 4.0 if controller_hz > 200 else 6.0
 
 
 def loop_cpu_percent(row: dict) -> float:
@@ -300,8 +292,8 @@ def main(argv=None) -> int:
     print(f"soak: the closed loop for {args.minutes:g} min at {args.rate:g} Hz, {args.control_law} law (logs in "
           f"{out / 'logs'})", flush=True)
     result = run_soak(args.minutes, args.rate, args.interval, args.refine_model, out, args.realtime_priority,
-                      args.composed, args.control_law, args.estimator_in_driver, {"period_clock": args.period_clock},
-                      args.compensator_in_bridge)
+                      control_law=args.control_law, compensator={"period_clock": args.period_clock},
+                      **layout_from(args))
     print_report(result)
     write_json(out / "soak.json", result)
     print(f"results: {out / 'soak.json'}")

@@ -171,10 +171,10 @@ class ClockMap:
         the most the line can have been delayed (a PONG: its PING's round trip)."""
         if self._ref is None:
             self._ref = (device_s, host_s)
-        if self._fit is not None and (host_s < self.to_host(device_s) - self.jump_s
-                                      or device_s < self._ref[0] + self._samples.last_device() - self.jump_s):
-            self.reset("a line far earlier than the map" if host_s < self.to_host(device_s) - self.jump_s
-                       else "the device time went back")  # the device restarted or its clock was set: start over
+        early = self._fit is not None and host_s < self.to_host(device_s) - self.jump_s
+        if early or (self._fit is not None and device_s < self._ref[0] + self._samples.last_device() - self.jump_s):
+            # the device restarted or its clock was set: start over
+            self.reset("a line far earlier than the map" if early else "the device time went back")
             self._ref = (device_s, host_s)
         d, h = device_s - self._ref[0], host_s - self._ref[1]
         if delay_bound < float("inf") and self._fit is not None and (
