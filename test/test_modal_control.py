@@ -10,6 +10,7 @@ from profile_pose_ros.core.control.compensator import (AxisKalman, Gains, InputS
                                                        zvd_impulses)
 from profile_pose_ros.core.control.modal_control import (MAX_GAP, ModalController, ModalDesign, axis_model,
                                                          shaped_step_increments)
+from profile_pose_ros.core.control.period_fusion import PeriodPose, fuse_period
 from profile_pose_ros.sim.arm import Arm, ArmModel
 
 TICK, TICKS = 0.004, 3
@@ -286,3 +287,53 @@ def test_the_controllers_clock_starts_a_period_at_every_call_however_close_the_s
         assert modal.skipped == skipped
         assert modal.started_period == period_start
     assert modal.position[0] > 0.5e-4  # and measured (the pose skipped would leave it at 0)
+
+
+def run_on_the_controllers_clock(axis: int, target: float, late_every: int, coast: bool,
+                                 seconds: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """period_clock robot_state at one profile a period: the controller triggers the profiler at each STATE, the
+    pose reaches the compensator by the next STATE, except every late_every-th, one period later; each STATE is
+    answered at once and its answer applied over the next period. Without a pose, coast=True answers on the
+    model (ModalController.coast); coast=False answers zero, as the compensator did before."""
+    rng = np.random.default_rng(5)
+    arm = Arm(ArmModel())
+    modal = ModalController(design(damping=SIM_DAMPING, reference_shaping="zvdd",
+                                   loop_delay_s=2 * PERIOD + ArmModel().delay_s), speed_limit=0.05)
+    reference = np.zeros(6)
+    reference[axis] = target
+    commanded, answer = np.zeros(6), np.zeros(6)
+    in_flight: list[tuple[int, PeriodPose]] = []
+    times, positions = [], []
+    for k in range(int(seconds / PERIOD)):
+        t = k * PERIOD
+        commanded += answer  # the answer to the last STATE, applied over this period
+        ready = [pose for due, pose in in_flight if due <= k]
+        in_flight = [(due, pose) for due, pose in in_flight if due > k]
+        answer = np.zeros(6)
+        if ready:
+            fused = fuse_period(ready, modal.arm_velocity)
+            modal.update(fused.stamp, fused.value, fused.variance, reference, period_start=True)
+            answer = np.round(modal.limit(np.full(6, 0.05)) * PERIOD * 1e6) * 1e-6
+        elif coast and modal.coast(reference) is not None:
+            answer = np.round(modal.limit(np.full(6, 0.05)) * PERIOD * 1e6) * 1e-6
+        truth = arm.position  # the profile this STATE triggered
+        late = late_every and k % late_every == late_every - 1
+        in_flight.append((k + 1 + late, PeriodPose(t, int(t * 1e9), truth + rng.normal(0, NOISE), NOISE ** 2)))
+        times.append(t)
+        positions.append(truth[axis])
+        arm.command = commanded.copy()
+        for _ in range(TICKS):
+            arm.advance(TICK)
+    return np.array(times), np.array(positions)
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_on_the_controllers_clock_a_late_pose_does_not_hold_up_the_planned_step(axis: int) -> None:
+    """One pose in five a period late: the law answers those periods on its model, so the ZVDD feedforward
+    keeps its timing and the barely damped y does not ring; answering zero instead stretches the plan."""
+    coasting = step_metrics(*run_on_the_controllers_clock(axis, 1e-3, late_every=5, coast=True), 1e-3)
+    on_time = step_metrics(*run_on_the_controllers_clock(axis, 1e-3, late_every=0, coast=True), 1e-3)
+    waiting = step_metrics(*run_on_the_controllers_clock(axis, 1e-3, late_every=5, coast=False), 1e-3)
+    assert coasting["SettlingTime"] <= 0.3 and coasting["RiseTime"] <= 0.15 and coasting["Overshoot"] <= 2.0
+    assert on_time["SettlingTime"] <= 0.3 and on_time["Overshoot"] <= 2.0
+    assert waiting["SettlingTime"] > coasting["SettlingTime"] or waiting["Overshoot"] > 2.0

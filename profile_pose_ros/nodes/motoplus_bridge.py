@@ -26,6 +26,7 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from ..core.wire import motoplus_protocol as mp
+from ..core.control.correction_spacing import CorrectionSpacing
 from ..core.timing.freshness import describe_age, stamp_age_ok
 from ..core.timing.latency_window import LatencyWindow
 from ..core.wire.pose_cdr import CdrFormatError, decode_twist_cdr, encode_pose_cdr, encode_twist_cdr
@@ -110,6 +111,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self._lock = threading.Lock()
         # (stamp ns, velocity, monotonic receive time) of the corrections since the last increment
         self._velocities: list[tuple[int, np.ndarray, float]] = []
+        self._spacing = CorrectionSpacing(self.limits.period_s)  # what time each correction stands for
         self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity): what the answer waits for
         self._latest_arrival = -np.inf  # time.monotonic() when it came
         self._state_arrived = -np.inf  # time.monotonic() when the newest STATE came
@@ -179,6 +181,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
             return
         with self._lock:
             self._velocities.append((stamp, velocity, received))
+            self._spacing.add(stamp * 1e-9)
             self._latest, self._latest_arrival = (stamp, velocity), received
             self._fresh.notify()
 
@@ -199,21 +202,21 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
                 self._fresh.wait(remaining)
 
     def _increment(self, now: float) -> tuple[np.ndarray, float] | None:
-        """This period's move (socket thread): the mean velocity of the corrections that arrived since the
-        last answer and are still fresh, by their stamps (two-sided) and by their arrival on this node's
-        monotonic clock, times the period, with the newest one's trigger time. None (a zero increment)
-        when there is none: a correction moves the arm in one period only, so a dead compensator's last
+        """This period's move (socket thread): the motion the corrections that arrived since the last answer
+        stand for (core/control/correction_spacing.py), of those still fresh by their stamps (two-sided) and by
+        their arrival on this node's monotonic clock, with the newest one's trigger time. None (a zero
+        increment) when there is none: a correction moves the arm once only, so a dead compensator's last
         word is not repeated."""
         with self._lock:
             received, self._velocities = self._velocities, []
+            spacing = self._spacing.share
         mono = time.monotonic()
         fresh = [(stamp, velocity) for stamp, velocity, arrived in received
                  if self._fresh_at(stamp, arrived, now, mono)]
         if not fresh:
             self.stale_periods += 1
             return None
-        velocity = np.mean([velocity for _, velocity in fresh], axis=0)
-        return velocity * self.limits.period_s, max(stamp for stamp, _ in fresh) * 1e-9
+        return np.sum([velocity for _, velocity in fresh], axis=0) * spacing, max(stamp for stamp, _ in fresh) * 1e-9
 
     def _fresh_at(self, stamp_ns: int, arrived: float, now: float, now_monotonic: float) -> bool:
         """A correction may still move the arm: its stamp within [-max_future, max_age] of now (wall) and its

@@ -200,6 +200,7 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.pose_fresh_until = -math.inf  # time.monotonic() at which the newest pose turns stale
         self.last_measured: np.ndarray | None = None  # the newest pose, base coordinates (for the reference check)
         self.poses = self.corrections = self.stale_zeros = 0
+        self.coasted = 0  # controller periods answered by the model alone (modal law, period_clock robot_state)
         self.refused = {"stale": 0, "future": 0, "frame": 0, "orientation": 0, "covariance": 0, "imprecise": 0,
                         "range": 0, "reference": 0}
         self.last_error = np.zeros(6)
@@ -307,15 +308,35 @@ class PdCompensatorNode(RefusalCounter, Node):
             # fresh ones only: after a pause of the STATEs the buffer may hold poses older than max_pose_age
             oldest = time.time() - self.values["max_pose_age"]
             poses = [pose for pose in poses if pose.stamp >= oldest]
-            if not poses or self.loop_refused or self.robot_heard > self.pose_fresh_until:
-                return  # nothing new, or stale: the watchdog's zeros
-            velocity = self.modal.x[:, 1] if self.modal is not None else self.filter.velocity
+            if self.loop_refused or self.robot_heard > self.pose_fresh_until:
+                return  # stale: the watchdog's zeros
+            if not poses:
+                self._coast()
+                return
+            velocity = self.modal.arm_velocity if self.modal is not None else self.filter.velocity
             fused = fuse_period(poses, velocity)
             self._drive(fused.stamp, fused.stamp_ns, fused.value, fused.variance, period_start=True)
+
+    def _coast(self) -> None:
+        """A controller period without a new pose (the estimate late, a profile refused): the modal law carries
+        its state by the model and answers anyway, so a planned step's feedforward is not held up by the
+        estimate; the PD law has nothing to add."""
+        if self.modal is None or self.reference is None or self.probing:
+            return
+        if self.modal.coast(self.reference) is None:
+            return
+        self.coasted += 1
+        self.corrections += 1
+        self._publish(self.modal.limit(self.gains.arrays[2]), int(self.last_pose_stamp * 1e9))
 
     def _on_pose(self, serialized: bytes) -> None:
         with self._lock:
             self._use_pose(serialized)
+
+    @property
+    def probing(self) -> bool:
+        """The first-motion check is still probing: the loop is open."""
+        return self.first_motion is not None and not self.first_motion.done
 
     @property
     def loop_refused(self) -> bool:
@@ -395,7 +416,7 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.last_measured = z
         self.last_rotation = rotation
         self.poses += 1
-        if self.first_motion is not None and not self.first_motion.done:
+        if self.probing:
             if self.reference is not None:
                 self._probe(z, pose_stamp_ns)
             return  # no reference: the watchdog keeps the output at zero
@@ -470,7 +491,7 @@ class PdCompensatorNode(RefusalCounter, Node):
             level, message = ERROR, self.first_motion.verdict
         elif self.reference is None:
             level, message = WARN, "no reference_pose yet: correction zero"
-        elif self.first_motion is not None and not self.first_motion.done:
+        elif self.probing:
             level, message = WARN, "first-motion check: probing (the loop is open)"
         elif time.monotonic() > self.pose_fresh_until:
             level, message = WARN, f"pose stale ({age:.3f} s old): correction zero"
@@ -484,6 +505,7 @@ class PdCompensatorNode(RefusalCounter, Node):
                   **self.latency.report()}
         if self.modal is not None:
             values["poses_within_a_period"] = self.modal.skipped  # not used: one pose a period drives the law
+            values["periods_coasted"] = self.coasted
         self.diagnostics_pub.publish(diagnostic_array(self, "compensator", "pd_compensator",
                                                       level, message, values))
 

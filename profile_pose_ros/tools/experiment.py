@@ -119,15 +119,18 @@ def post_rise_spectrum(t: np.ndarray, y: np.ndarray, size: float) -> tuple[np.nd
     return np.fft.rfftfreq(len(residual), dt), 2.0 * np.abs(np.fft.rfft(residual)) / max(len(residual), 1)
 
 
-def loop_delay(period_s: float, answer_wait: float, controller_clock: bool = False) -> float:
+def loop_delay(period_s: float, answer_wait: float, controller_clock: bool = False, triggered: bool = True) -> float:
     """The modal law's loop_delay on sim_cell: from a pose's stamp to the arm moving on its increment. The
     increment answers this period's STATE (answer_wait > 0: the bridge waits for it) or the next one's
     (answer_wait 0), is applied from the period after that, spread over its ticks (on average half a period
     less one tick later), then the arm's own delay. controller_clock (the compensator's period_clock
-    robot_state): the period's newest pose is already REPLY_POSE_AGE_S old at the STATE it answers."""
-    answered = period_s if answer_wait > 0 else 2 * period_s
-    return (answered + (period_s - INTERPOLATION_CLOCK_S) / 2 + SIM_ARM_DELAY_S
-            + (REPLY_POSE_AGE_S if controller_clock else 0.0))
+    robot_state): the increment answers the STATE after its pose, whose age then is a period when the
+    controller triggers the profiler, and REPLY_POSE_AGE_S from a faster profiler on its own clock."""
+    if controller_clock:
+        answered = period_s + (period_s if triggered else REPLY_POSE_AGE_S)
+    else:
+        answered = period_s if answer_wait > 0 else 2 * period_s
+    return answered + (period_s - INTERPOLATION_CLOCK_S) / 2 + SIM_ARM_DELAY_S
 
 
 def control_hz(profile_rate_hz: float) -> float:
@@ -228,7 +231,7 @@ class Experiment:
                                **loop},
             "pd_compensator": {"diagnostics_period": 0.5, "control_period": period,
                                "loop_delay": loop_delay(period, bridge_params.get("answer_wait", _BRIDGE_DEFAULTS["answer_wait"]),
-                                                        controller_clocked(compensator)),
+                                                        controller_clocked(compensator), not profile_rate_hz),
                                **compensator, **loop},
             "motoplus_bridge": {"port": robot_port, "period": period, "diagnostics_period": 0.5,
                                 "max_step": self.max_step.tolist(), **bridge_params, **loop}}

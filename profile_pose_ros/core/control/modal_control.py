@@ -193,6 +193,8 @@ class ModalController:
         self.velocity = np.zeros(6)
         self.pending = np.zeros(6)  # the increment asked for at the last pose: the next period's input
         self.started_period = False  # the last update started a period: self.pending is that period's
+        self.coasted = 0  # periods carried by the model alone since the last pose
+        self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=2 * MAX_GAP + 2)  # (time, position) a period
 
     def _forget_plan(self) -> None:
         self.plan_state: np.ndarray | None = None  # (6, n): the reference state, commands absolute
@@ -204,27 +206,38 @@ class ModalController:
     def position(self) -> np.ndarray:
         return self.x[:, 0].copy()
 
+    @property
+    def arm_velocity(self) -> np.ndarray:
+        """The arm's estimated velocity (not the correction's: that is self.velocity)."""
+        return self.x[:, 1].copy()
+
     def update(self, time: float, z: np.ndarray, variance: np.ndarray, reference: np.ndarray | None,
                period_start: bool = False) -> np.ndarray:
         """The velocity for this pose (zero without a reference: the pose is only measured). period_start: the
         controller's own clock says a period starts here (the compensator's period_clock robot_state, one fused
-        pose a period), so neither the poses' spacing nor a grid decides it."""
+        pose a period), so neither the poses' spacing nor a grid decides it; a pose the filter already
+        coasted past (coast()) is measured by its difference from the filter's estimate at its own time."""
         T = self.design.period_s
         spacing = T  # the poses' median spacing: measured below whenever a period is under way
+        stamp, late_innovation = time, None
         if self.time is not None:
+            if period_start and time < self.time + 0.5 * T and time >= self.last_stamp:
+                late_innovation = self._innovation_at(time, z)
+                time = self.time + T
             gap = (time - self.time) / T
-            if time < self.last_stamp or gap > MAX_GAP + 0.5:
+            if stamp < self.last_stamp or gap > MAX_GAP + 0.5 or (period_start and late_innovation is None
+                                                                     and gap < 0.5):
                 self.reset()  # time went backwards (a replayed bag, a restarted clock) or a long gap
             else:
-                self.intervals.append(min(time - self.last_stamp, T))
-                self.last_stamp = time
+                self.intervals.append(min(stamp - self.last_stamp, T))
+                self.last_stamp = stamp
                 spacing = median(self.intervals)
                 if not period_start and gap < 1.0 - 0.5 * spacing / T:
                     self.skipped += 1  # this period has its pose: this one has no increment of its own
                     self.started_period = False
                     return self.velocity
         if self.time is None:
-            self.last_stamp = time
+            self.last_stamp = stamp
             self._start(time, z, variance)
         else:
             # whole periods: stamp jitter is not the arm's time
@@ -238,7 +251,35 @@ class ModalController:
             # ran up to 1.5x fast. Pulling a grid towards such stamps drifts it, as the stamps that start a
             # period are chosen by where the grid is.)
             self.time = time if period_start or spacing >= ONE_POSE_A_PERIOD * T else self.time + periods * T
+            if late_innovation is not None:
+                z = self.x[:, 0] + late_innovation
             self._measure(z, variance)
+        self.coasted = 0
+        self.history.append((self.time, self.x[:, 0].copy()))
+        return self._law(reference)
+
+    def coast(self, reference: np.ndarray | None) -> np.ndarray | None:
+        """The controller's period began and no pose has come since the last (period_clock robot_state): the
+        model carries the state one period and the law runs on it, so a planned step's feedforward leaves in
+        its own period however late the estimate is. None once the filter has no state to carry (not started,
+        or MAX_GAP periods without a pose: it starts again from the next one)."""
+        if self.time is None or self.coasted >= MAX_GAP:
+            return None
+        self._predict()
+        self.time += self.design.period_s
+        self.coasted += 1
+        self.history.append((self.time, self.x[:, 0].copy()))
+        return self._law(reference)
+
+    def _innovation_at(self, time: float, z: np.ndarray) -> np.ndarray | None:
+        """z's difference from the filter's position estimate of the period nearest its time (None: no longer
+        held). Carried to now through the model, as the periods since added only the model's own motion."""
+        for when, position in reversed(self.history):
+            if abs(when - time) <= 0.5 * self.design.period_s:
+                return z - position
+        return None
+
+    def _law(self, reference: np.ndarray | None) -> np.ndarray:
         self.started_period = reference is not None
         if reference is None:
             self.velocity, self.pending = np.zeros(6), np.zeros(6)
