@@ -373,3 +373,48 @@ def test_on_the_controllers_clock_each_state_gets_one_correction_from_the_poses_
 
 def stamp_ns(message) -> int:
     return message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+
+
+def test_on_the_controllers_clock_the_pose_a_state_triggered_answers_the_next_state(ros) -> None:
+    """A profiler the controller triggers: one pose a period, stamped at its STATE's tick. However soon that
+    pose is estimated, and however late the STATE is read, the STATE is answered from the pose before it;
+    its own pose answers the next one (loop_delay counts that period)."""
+    period = 0.004
+    node = compensator(ros, control_law="modal", period_clock="robot_state", control_period=period, max_pose_age=1.0)
+    talker = ros.node("talker")
+    poses = talker.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
+    states = talker.create_publisher(PoseStamped, "robot_state", 10)
+    reference = talker.create_publisher(PoseStamped, "reference_pose", 10)
+    corrections = []
+    talker.create_subscription(TwistStamped, "correction", corrections.append, 100)
+    translation = np.array([0.0, 0.0, 0.45])
+    covariance = np.diag([1e-10] * 3 + [1e-8] * 3)
+    assert ros.spin_until(lambda: node.count_publishers("robot_state") and node.count_subscribers("correction"), 5)
+    start = time.time_ns() - 40_000_000  # every stamp below in the past, and fresh (max_pose_age) for a second
+    tick = int(period * 1e9)
+
+    def send(publisher, message, count) -> None:
+        before = count()
+        publisher.publish(message)
+        assert ros.spin_until(lambda: count() > before, 5.0)
+
+    def pose_at(k: int):
+        return pose_with_covariance(pose_stamped(LOOKING_DOWN, translation, Time(nanoseconds=start + k * tick)
+                                                 .to_msg(), "gauge"), covariance)
+
+    def state_at(k: int, late_ns: int = 0):
+        return pose_stamped(np.eye(3), np.zeros(3), Time(nanoseconds=start + k * tick + late_ns).to_msg(), "base")
+
+    first = 3  # poses on their own clock, one a period, until STATEs flow
+    for k in range(first):
+        send(poses, pose_at(k), lambda: node.poses)
+    reference.publish(pose_stamped(LOOKING_DOWN, translation + [1e-3, 0, 0], talker.get_clock().now().to_msg(),
+                                   "gauge"))
+    assert ros.spin_until(lambda: node.reference is not None, 5.0)
+    for k in range(first, first + 5):
+        send(poses, pose_at(k), lambda: node.poses)  # this STATE's own pose, estimated before the STATE is read
+        count = len(corrections)
+        send(states, state_at(k, late_ns=tick // 3), lambda: node.robot_heard)  # read a third of a period late
+        assert ros.spin_until(lambda: len(corrections) > count, 5.0)
+        if k > first:  # (the first STATE has no earlier pose of its own: the law coasts)
+            assert stamp_ns(corrections[-1]) == start + (k - 1) * tick, "answered with the pose it triggered"

@@ -16,6 +16,8 @@ import math
 import sys
 import threading
 import time
+from collections import deque
+from statistics import median
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -29,9 +31,9 @@ from ..core.control.compensator import (AxisKalman, Gains, InputShaper, Mounting
 from ..core.timing.freshness import describe_age, fresh_until, stamp_age_ok
 from ..core.timing.latency_window import LatencyWindow
 from ..core.commissioning.first_motion import FirstMotionCheck, ProbeDesign
-from ..core.control.modal_control import ModalController, ModalDesign
+from ..core.control.modal_control import ONE_POSE_A_PERIOD, SPACING_WINDOW, ModalController, ModalDesign
 from ..core.control.period_fusion import PeriodPose, fuse_period
-from ..core.wire.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, encode_twist_cdr
+from ..core.wire.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, decode_stamp, encode_twist_cdr
 from ..core.model.rotation import rotation_from_quaternion_xyzw
 from ..core.estimation.result import position_sigma
 from .diagnostics import ERROR, OK, WARN, RefusalCounter, diagnostic_array
@@ -188,6 +190,7 @@ class PdCompensatorNode(RefusalCounter, Node):
             raise ValueError(f"period_clock must be one of {', '.join(PERIOD_CLOCKS)}, not {v['period_clock']!r}")
         self.robot_heard = -math.inf  # time.monotonic() of the newest robot_state: the bridge is armed
         self.period_poses: list[PeriodPose] = []  # period_clock robot_state: the poses since the last STATE
+        self.pose_spacing: deque[float] = deque(maxlen=SPACING_WINDOW)  # between the poses' stamps (s)
         self.last_rotation = np.eye(3)  # the newest pose's rotation (F in G): the tool's lever arm
         self.modal = modal_controller_from(v)
         # The PD law's filter and shaper; the modal law has its own filter and needs no shaper.
@@ -200,6 +203,7 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.pose_fresh_until = -math.inf  # time.monotonic() at which the newest pose turns stale
         self.last_measured: np.ndarray | None = None  # the newest pose, base coordinates (for the reference check)
         self.poses = self.corrections = self.stale_zeros = 0
+        self.law_stamp_ns = 0
         self.coasted = 0  # controller periods answered by the model alone (modal law, period_clock robot_state)
         self.refused = {"stale": 0, "future": 0, "frame": 0, "orientation": 0, "covariance": 0, "imprecise": 0,
                         "range": 0, "reference": 0}
@@ -300,11 +304,25 @@ class PdCompensatorNode(RefusalCounter, Node):
     def _on_robot_state(self, _msg) -> None:
         self.robot_heard = time.monotonic()
 
-    def _on_controller_period(self, _serialized: bytes) -> None:
-        """period_clock robot_state: a controller period began; the poses since the last one drive the law."""
+    def _on_controller_period(self, serialized: bytes) -> None:
+        """period_clock robot_state: a controller period began; the poses since the last one drive the law.
+        When the controller triggers the profiler (one pose a period), the pose of this STATE's own trigger
+        waits for the next STATE, however soon it is estimated: loop_delay counts a period from a pose to the
+        STATE it answers, and a STATE read late (its host stamp ms after the tick) must not answer with it."""
+        try:
+            state_stamp = decode_stamp(serialized) * 1e-9
+        except CdrFormatError as exc:
+            self.get_logger().error(f"malformed robot_state ignored: {exc}", throttle_duration_sec=1.0)
+            return
         with self._lock:
             self.robot_heard = time.monotonic()
-            poses, self.period_poses = self.period_poses, []
+            period = self.values["control_period"]
+            if self.pose_spacing and median(self.pose_spacing) >= ONE_POSE_A_PERIOD * period:
+                cutoff = state_stamp - 0.5 * period
+                poses = [pose for pose in self.period_poses if pose.stamp <= cutoff]
+                self.period_poses = [pose for pose in self.period_poses if pose.stamp > cutoff]
+            else:
+                poses, self.period_poses = self.period_poses, []
             # fresh ones only: after a pause of the STATEs the buffer may hold poses older than max_pose_age
             oldest = time.time() - self.values["max_pose_age"]
             poses = [pose for pose in poses if pose.stamp >= oldest]
@@ -327,7 +345,7 @@ class PdCompensatorNode(RefusalCounter, Node):
             return
         self.coasted += 1
         self.corrections += 1
-        self._publish(self.modal.limit(self.gains.arrays[2]), int(self.last_pose_stamp * 1e9))
+        self._publish(self.modal.limit(self.gains.arrays[2]), self.law_stamp_ns)
 
     def _on_pose(self, serialized: bytes) -> None:
         with self._lock:
@@ -411,6 +429,8 @@ class PdCompensatorNode(RefusalCounter, Node):
             self._refuse("covariance", "pose with an invalid orientation or a covariance that is not positive "
                                        "ignored")
             return
+        if self.last_pose_stamp:
+            self.pose_spacing.append(stamp - self.last_pose_stamp)
         self.last_pose_stamp = stamp
         self.pose_fresh_until = fresh_until(received, age, v["max_pose_age"])
         self.last_measured = z
@@ -432,6 +452,7 @@ class PdCompensatorNode(RefusalCounter, Node):
     def _drive(self, stamp: float, stamp_ns: int, z: np.ndarray, variance: np.ndarray,
                period_start: bool = False) -> None:
         """One measurement through the law, and its correction (the modal law: one a period)."""
+        self.law_stamp_ns = stamp_ns  # a correction the model makes alone (_coast) carries the newest pose it used
         if self.modal is not None:
             self.modal.update(stamp, z, variance, self.reference, period_start)
             if self.reference is None:

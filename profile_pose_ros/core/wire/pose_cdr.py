@@ -37,6 +37,11 @@ def _read_header(data: bytes) -> tuple[int, str, int]:
     return stamp_ns, frame_id, reader.at
 
 
+def decode_stamp(data: bytes) -> int:
+    """The header stamp (ns) of a serialized message that starts with a std_msgs/Header."""
+    return _read_header(data)[0]
+
+
 @lru_cache(maxsize=16)
 def _header(frame_id: str) -> bytes:
     """The header stamped zero and the padding that aligns the doubles after it to 8."""
