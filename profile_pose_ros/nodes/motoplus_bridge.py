@@ -29,6 +29,7 @@ from ..core.wire import motoplus_protocol as mp
 from ..core.control.correction_spacing import CorrectionSpacing
 from ..core.timing.freshness import describe_age, stamp_age_ok
 from ..core.timing.latency_window import LatencyWindow
+from ..core.timing.tick_clock import TickClock
 from ..core.wire.pose_cdr import CdrFormatError, decode_twist_cdr, encode_pose_cdr, encode_twist_cdr
 from ..core.model.transform import rotation_from_controller_angles
 from ..devices.motoplus_client import ARMED, MotoPlusClient, SessionLimits
@@ -115,6 +116,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self._latest: tuple[int, np.ndarray] | None = None  # (stamp ns, velocity): what the answer waits for
         self._latest_arrival = -np.inf  # time.monotonic() when it came
         self._state_arrived = -np.inf  # time.monotonic() when the newest STATE came
+        self._tick_clock = TickClock()  # the controller's time_us on this host's clock, for robot_state's stamp
         self.refused = {"frame": 0, "future": 0, "stale": 0, "not_finite": 0, "malformed": 0}
         self._fresh = threading.Condition(self._lock)  # a correction arrived
         self.latency = LatencyWindow("trigger_to_send_ms")  # the newest correction's trigger -> its increment sent
@@ -243,10 +245,12 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
             self.increment_pub.publish(encode_twist_cdr(mp.units_to_metres(units), stamp_ns, self.values["base_frame"]))
 
     def _on_state(self, state: mp.State, host_time: float) -> None:
-        """robot_state: the tool's pose in the base frame as the controller reports it (its Rx Ry Rz angles)."""
+        """robot_state: the tool's pose in the base frame as the controller reports it (its Rx Ry Rz angles),
+        stamped when the controller sampled it (its tick on this host's clock), not when this thread read it."""
         self._state_arrived = time.monotonic()  # before the publish: a reply can come before it returns
         pose = np.array(mp.units_to_metres(state.pose))
-        serialized = encode_pose_cdr(rotation_from_controller_angles(pose[3:]), pose[:3], int(host_time * 1e9),
+        tick = self._tick_clock.host_time(state.time_us, host_time)
+        serialized = encode_pose_cdr(rotation_from_controller_angles(pose[3:]), pose[:3], int(tick * 1e9),
                                      self.values["base_frame"])
         self.state_out.publish(serialized)
         self.state_out.hand_over(serialized)
