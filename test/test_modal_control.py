@@ -279,13 +279,13 @@ def test_the_controllers_clock_starts_a_period_at_every_call_however_close_the_s
     handled late and the next one on time give stamps well under a period apart; the controller still ran a
     period between them, so the law runs one (on the poses' own spacing it would skip it)."""
     z, variance, reference = np.zeros(6), np.full(6, 1e-12), np.zeros(6)
-    for period_start, skipped in ((False, 1), (True, 0)):
+    for on_ticks, skipped in ((False, 1), (True, 0)):
         modal = ModalController(design())
         for k in range(5):
-            modal.update(k * PERIOD, z, variance, reference, period_start=period_start)
-        modal.update(4.4 * PERIOD, z + 1e-4, variance, reference, period_start=period_start)
+            modal.update(k * PERIOD, z, variance, reference, tick=k * PERIOD if on_ticks else None)
+        modal.update(4.4 * PERIOD, z + 1e-4, variance, reference, tick=5 * PERIOD if on_ticks else None)
         assert modal.skipped == skipped
-        assert modal.started_period == period_start
+        assert modal.started_period == on_ticks
     assert modal.position[0] > 0.5e-4  # and measured (the pose skipped would leave it at 0)
 
 
@@ -312,9 +312,9 @@ def run_on_the_controllers_clock(axis: int, target: float, late_every: int, coas
         answer = np.zeros(6)
         if ready:
             fused = fuse_period(ready, modal.arm_velocity)
-            modal.update(fused.stamp, fused.value, fused.variance, reference, period_start=True)
+            modal.update(fused.stamp, fused.value, fused.variance, reference, tick=t)
             answer = np.round(modal.limit(np.full(6, 0.05)) * PERIOD * 1e6) * 1e-6
-        elif coast and modal.coast(reference) is not None:
+        elif coast and modal.coast(reference, t) is not None:
             answer = np.round(modal.limit(np.full(6, 0.05)) * PERIOD * 1e6) * 1e-6
         truth = arm.position  # the profile this STATE triggered
         late = late_every and k % late_every == late_every - 1
@@ -337,3 +337,22 @@ def test_on_the_controllers_clock_a_late_pose_does_not_hold_up_the_planned_step(
     assert coasting["SettlingTime"] <= 0.3 and coasting["RiseTime"] <= 0.15 and coasting["Overshoot"] <= 2.0
     assert on_time["SettlingTime"] <= 0.3 and on_time["Overshoot"] <= 2.0
     assert waiting["SettlingTime"] > coasting["SettlingTime"] or waiting["Overshoot"] > 2.0
+
+
+def test_on_the_controllers_clock_the_grid_follows_the_ticks_after_coasting() -> None:
+    """A faster profiler's newest pose wanders by up to a period against the ticks, and a stall leaves STATEs
+    without poses (coasts). Each STATE advances the model one period on the ticks' grid, and the estimate stays
+    on the measurements through every stall."""
+    rng = np.random.default_rng(3)
+    modal = ModalController(design(period_s=0.004, loop_delay_s=0.0166), speed_limit=0.05)
+    arm_at = np.zeros(6)
+    worst = 0.0
+    for k in range(1500):
+        tick = k * 0.004
+        if 300 <= k % 500 < 303:  # a stall: three STATEs without a pose
+            assert modal.coast(np.zeros(6), tick) is not None
+            continue
+        stamp = tick - rng.choice([0.9e-3, 1.2e-3, 2.4e-3, 3.5e-3])
+        modal.update(stamp, arm_at + rng.normal(0, 5e-6, 6), np.full(6, 25e-12), np.zeros(6), tick=tick)
+        worst = max(worst, float(np.max(np.abs(modal.position - arm_at))))
+    assert worst < 50e-6, worst

@@ -35,6 +35,7 @@ def test_a_1khz_soak_in_two_loop_processes_answers_the_controllers_periods(tmp_p
     assert not result["crashes"] and set(v["rss_growth_mb"]) == {"sim_cell", "profiler_estimator",
                                                                   "compensator_bridge"}
     assert v["controller_periods"] == pytest.approx(15.0 * 250.0, rel=0.1)
-    assert v["armed_periods"] >= 0.8 * v["controller_periods"], v  # the session stayed up
-    assert 0.2 < v["answered"] <= 1.0, v  # CI runners are slower than the 60-75 % measured here
+    why = (v, result["not_ok"])  # the bridge's reports that were not OK say why a session ended
+    assert v["armed_periods"] >= 0.8 * v["controller_periods"], why  # the session stayed up
+    assert 0.2 < v["answered"] <= 1.0, why
     assert 0 < v["increment_p99_ms"] < 100 and set(v["checks"]) and "ok" in v

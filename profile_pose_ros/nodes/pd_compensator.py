@@ -329,19 +329,19 @@ class PdCompensatorNode(RefusalCounter, Node):
             if self.loop_refused or self.robot_heard > self.pose_fresh_until:
                 return  # stale: the watchdog's zeros
             if not poses:
-                self._coast()
+                self._coast(state_stamp)
                 return
             velocity = self.modal.arm_velocity if self.modal is not None else self.filter.velocity
             fused = fuse_period(poses, velocity)
-            self._drive(fused.stamp, fused.stamp_ns, fused.value, fused.variance, period_start=True)
+            self._drive(fused.stamp, fused.stamp_ns, fused.value, fused.variance, tick=state_stamp)
 
-    def _coast(self) -> None:
+    def _coast(self, tick: float) -> None:
         """A controller period without a new pose (the estimate late, a profile refused): the modal law carries
         its state by the model and answers anyway, so a planned step's feedforward is not held up by the
         estimate; the PD law has nothing to add."""
         if self.modal is None or self.reference is None or self.probing:
             return
-        if self.modal.coast(self.reference) is None:
+        if self.modal.coast(self.reference, tick) is None:
             return
         self.coasted += 1
         self.corrections += 1
@@ -450,11 +450,12 @@ class PdCompensatorNode(RefusalCounter, Node):
         self._drive(stamp, pose_stamp_ns, z, variance)
 
     def _drive(self, stamp: float, stamp_ns: int, z: np.ndarray, variance: np.ndarray,
-               period_start: bool = False) -> None:
-        """One measurement through the law, and its correction (the modal law: one a period)."""
+               tick: float | None = None) -> None:
+        """One measurement through the law, and its correction (the modal law: one a period). tick: the
+        controller's tick that began the period (period_clock robot_state)."""
         self.law_stamp_ns = stamp_ns  # a correction the model makes alone (_coast) carries the newest pose it used
         if self.modal is not None:
-            self.modal.update(stamp, z, variance, self.reference, period_start)
+            self.modal.update(stamp, z, variance, self.reference, tick)
             if self.reference is None:
                 return  # no target yet: the watchdog keeps the output at zero
             self.last_error = self.reference - self.modal.position

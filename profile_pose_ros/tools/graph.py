@@ -129,6 +129,7 @@ class Graph:
         self._parameter_clients: dict = {}
         self.diagnostics: dict[str, dict] = {}  # status name -> its values, the newest of each node
         self.messages: dict[str, str] = {}  # status name -> its message, the newest
+        self.received: dict[str, float] = {}  # status name -> time.monotonic() its newest report came
         self.diagnostics_listeners: list = []  # callables(status name, values): every report, not just the newest
         from diagnostic_msgs.msg import DiagnosticArray
 
@@ -138,6 +139,7 @@ class Graph:
         for status in msg.status:
             values = self.diagnostics[status.name] = {kv.key: kv.value for kv in status.values}
             self.messages[status.name] = status.message
+            self.received[status.name] = time.monotonic()
             for listener in self.diagnostics_listeners:
                 listener(status.name, values)
 
@@ -153,6 +155,7 @@ class Graph:
         """Drop what `node` last reported, so that only its next report counts (e.g. after a restart)."""
         for name in [n for n in self.diagnostics if self.is_from(n, node)]:
             del self.diagnostics[name]
+            self.received.pop(name, None)
 
     def diagnostic(self, node: str, key: str, default: str = "") -> str:
         """A value from the newest /diagnostics of `node` of this graph's namespace."""
@@ -160,6 +163,11 @@ class Graph:
             if self.is_from(name, node):
                 return values.get(key, default)
         return default
+
+    def reported_at(self, node: str) -> float:
+        """time.monotonic() when the newest /diagnostics of `node` came (nan if none): the time its counts are
+        from, to within the transport's delay."""
+        return next((t for name, t in self.received.items() if self.is_from(name, node)), float("nan"))
 
     def diagnostics_message(self, node: str) -> str:
         """The message of the newest /diagnostics status of `node` of this graph's namespace."""

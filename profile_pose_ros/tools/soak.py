@@ -78,13 +78,16 @@ class Soak:
     def counters(self) -> dict:
         g = self.graph
         return {"triggered": int(g.diagnostic("sim_cell", "triggers", "0") or 0),
+                "controller_states": int(g.diagnostic("sim_cell", "robot_states", "0") or 0),
                 "profiles": int(g.diagnostic("profiler_driver", "profiles_published", "0") or 0),
                 "poses": int(g.diagnostic("pose_estimator", "poses_published", "0") or 0),
                 "compensator_poses": int(g.diagnostic("pd_compensator", "poses", "0") or 0),
                 # the modal law's: taken, but another pose of the same controller period drove the law
                 "within_a_period": int(g.diagnostic("pd_compensator", "poses_within_a_period", "0") or 0),
                 # what the arm feels (armed_periods, answered_periods)
-                **{f"{k}_periods": v for k, v in answered_periods(self.exp).items()}}
+                **{f"{k}_periods": v for k, v in answered_periods(self.exp).items()},
+                # when the bridge made that report: its periods are counted over the time between two of them
+                "bridge_report_at": g.reported_at("motoplus_bridge")}
 
     def memory_mb(self) -> dict[str, float]:
         out = {}
@@ -123,7 +126,7 @@ class Soak:
         # controller's periods from a report made armed
         self.exp.bridge(arm=True)
         self.exp.wait(1.0)
-        armed, armed_at = self.counters(), time.monotonic()
+        armed = self.counters()
         self.latency.recording = True
         intervals, sign = [], 1.0
         start = before = time.monotonic()
@@ -153,8 +156,11 @@ class Soak:
         # before the clock stops: the bridge's periods after it would go unanswered by design
         periods = {k: counts[k] - armed[k] for k in ("armed_periods", "answered_periods")}
         # every period of the controller's clock counts, armed or not: a session the bridge ended is a loop the
-        # arm does not feel
-        periods["controller_periods"] = round((time.monotonic() - armed_at) * control_hz(self.rate_hz))
+        # arm does not feel. Over the time between the two reports the counts come from, not this client's
+        # reading times: a report is up to its period old when read, which put up to 3 % more periods in the
+        # counts than in the time between readings
+        periods["controller_periods"] = round((counts["bridge_report_at"] - armed["bridge_report_at"])
+                                              * control_hz(self.rate_hz))
         self._clock(False)
         last = self._settled_counters()
         self.exp.bridge(arm=False)

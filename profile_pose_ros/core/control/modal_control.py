@@ -195,6 +195,8 @@ class ModalController:
         self.started_period = False  # the last update started a period: self.pending is that period's
         self.coasted = 0  # periods carried by the model alone since the last pose
         self.history: deque[tuple[float, np.ndarray]] = deque(maxlen=2 * MAX_GAP + 2)  # (time, position) a period
+        self.last_tick: float | None = None  # the controller's tick of the last period (update/coast with a tick)
+        self.ages: deque[float] = deque(maxlen=SPACING_WINDOW)  # tick - the newest pose's stamp, a STATE
 
     def _forget_plan(self) -> None:
         self.plan_state: np.ndarray | None = None  # (6, n): the reference state, commands absolute
@@ -212,32 +214,28 @@ class ModalController:
         return self.x[:, 1].copy()
 
     def update(self, time: float, z: np.ndarray, variance: np.ndarray, reference: np.ndarray | None,
-               period_start: bool = False) -> np.ndarray:
-        """The velocity for this pose (zero without a reference: the pose is only measured). period_start: the
-        controller's own clock says a period starts here (the compensator's period_clock robot_state, one fused
-        pose a period), so neither the poses' spacing nor a grid decides it; a pose the filter already
-        coasted past (coast()) is measured by its difference from the filter's estimate at its own time."""
+               tick: float | None = None) -> np.ndarray:
+        """The velocity for this pose (zero without a reference: the pose is only measured). tick: the
+        controller's tick that began this period (the compensator's period_clock robot_state, one fused pose
+        a STATE): then the ticks, not the poses' stamps, say how many periods passed (_update_on_tick)."""
+        if tick is not None:
+            return self._update_on_tick(time, z, variance, reference, tick)
         T = self.design.period_s
         spacing = T  # the poses' median spacing: measured below whenever a period is under way
-        stamp, late_innovation = time, None
         if self.time is not None:
-            if period_start and time < self.time + 0.5 * T and time >= self.last_stamp:
-                late_innovation = self._innovation_at(time, z)
-                time = self.time + T
             gap = (time - self.time) / T
-            if stamp < self.last_stamp or gap > MAX_GAP + 0.5 or (period_start and late_innovation is None
-                                                                     and gap < 0.5):
+            if time < self.last_stamp or gap > MAX_GAP + 0.5:
                 self.reset()  # time went backwards (a replayed bag, a restarted clock) or a long gap
             else:
-                self.intervals.append(min(stamp - self.last_stamp, T))
-                self.last_stamp = stamp
+                self.intervals.append(min(time - self.last_stamp, T))
+                self.last_stamp = time
                 spacing = median(self.intervals)
-                if not period_start and gap < 1.0 - 0.5 * spacing / T:
+                if gap < 1.0 - 0.5 * spacing / T:
                     self.skipped += 1  # this period has its pose: this one has no increment of its own
                     self.started_period = False
                     return self.velocity
         if self.time is None:
-            self.last_stamp = stamp
+            self.last_stamp = time
             self._start(time, z, variance)
         else:
             # whole periods: stamp jitter is not the arm's time
@@ -250,23 +248,62 @@ class ModalController:
             # than the controller start a period with every pose, each up to half a spacing early: the model
             # ran up to 1.5x fast. Pulling a grid towards such stamps drifts it, as the stamps that start a
             # period are chosen by where the grid is.)
-            self.time = time if period_start or spacing >= ONE_POSE_A_PERIOD * T else self.time + periods * T
-            if late_innovation is not None:
-                z = self.x[:, 0] + late_innovation
+            self.time = time if spacing >= ONE_POSE_A_PERIOD * T else self.time + periods * T
             self._measure(z, variance)
         self.coasted = 0
         self.history.append((self.time, self.x[:, 0].copy()))
         return self._law(reference)
 
-    def coast(self, reference: np.ndarray | None) -> np.ndarray | None:
-        """The controller's period began and no pose has come since the last (period_clock robot_state): the
-        model carries the state one period and the law runs on it, so a planned step's feedforward leaves in
-        its own period however late the estimate is. None once the filter has no state to carry (not started,
-        or MAX_GAP periods without a pose: it starts again from the next one)."""
-        if self.time is None or self.coasted >= MAX_GAP:
+    def _update_on_tick(self, time: float, z: np.ndarray, variance: np.ndarray, reference: np.ndarray | None,
+                        tick: float) -> np.ndarray:
+        """One STATE, one period of the model: each STATE's answer is one increment, however the poses before
+        it are spaced (a faster profiler's newest pose wanders by up to a period against the ticks; a STATE read
+        late and the next on time come well under a period apart). The period's measurement time is the tick
+        less the poses' median age at their STATE, a grid the ticks keep in step: a pose earlier than half a
+        period before it belongs to a period the model already passed (coast()) and is measured by its
+        difference from the estimate of its own time. A grid placed by the poses' own stamps can end up half a
+        period off them after a few coasts: every later pose then counts as late, its innovation is taken a
+        period or two behind, and the filter, measured that much in the past, rings up until it overflows."""
+        T = self.design.period_s
+        if self.time is not None and (time < self.last_stamp or self.last_tick is not None and (
+                tick <= self.last_tick or tick - self.last_tick > (MAX_GAP + 0.5) * T)):
+            self.reset()  # time went backwards (a replayed bag, a restarted controller) or a long gap
+        self.ages.append(tick - time)
+        if self.time is None:
+            self.last_stamp, self.last_tick = time, tick
+            self._start(time, z, variance)
+        else:
+            self._advance_to(tick)
+            self.last_stamp = max(self.last_stamp, time)
+            if time < self.time - 0.5 * T:
+                innovation = self._innovation_at(time, z)
+                if innovation is None:  # older than the history holds: nothing to measure it against
+                    self.coasted = 0
+                    return self._law(reference)
+                z = self.x[:, 0] + innovation
+            self._measure(z, variance)
+        self.coasted = 0
+        self.history.append((self.time, self.x[:, 0].copy()))
+        return self._law(reference)
+
+    def _advance_to(self, tick: float) -> None:
+        """The model through the periods up to `tick` (one unless STATEs went unanswered, or the first tick
+        after poses on their own clock), on the ticks' grid."""
+        T = self.design.period_s
+        periods = 1 if self.last_tick is None else max(1, int(round((tick - self.last_tick) / T)))
+        for _ in range(periods):
+            self._predict()
+        self.last_tick = tick
+        self.time = tick - median(self.ages) if self.ages else self.time + periods * T
+
+    def coast(self, reference: np.ndarray | None, tick: float) -> np.ndarray | None:
+        """The controller's period began at `tick` and no pose has come since the last (period_clock
+        robot_state): the model carries the state one period and the law runs on it, so a planned step's
+        feedforward leaves in its own period however late the estimate is. None once the filter has no state
+        to carry (not started, or MAX_GAP periods without a pose: it starts again from the next one)."""
+        if self.time is None or self.coasted >= MAX_GAP or self.last_tick is not None and tick <= self.last_tick:
             return None
-        self._predict()
-        self.time += self.design.period_s
+        self._advance_to(tick)
         self.coasted += 1
         self.history.append((self.time, self.x[:, 0].copy()))
         return self._law(reference)
