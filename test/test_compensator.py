@@ -323,20 +323,27 @@ def test_a_covariance_near_the_float_limit_is_refused_as_imprecise(ros) -> None:
     assert (node.poses, node.refused["imprecise"]) == (0, 1)
 
 
+def controllers_clock_talker(ros, node):
+    """A node publishing poses, robot_state and the reference to `node`, and the corrections it gets back,
+    once `node` hears robot_state and sends corrections."""
+    talker = ros.node("talker")
+    poses = talker.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
+    states = talker.create_publisher(PoseStamped, "robot_state", 10)
+    reference = talker.create_publisher(PoseStamped, "reference_pose", 10)
+    corrections: list = []
+    talker.create_subscription(TwistStamped, "correction", corrections.append, 100)
+    assert ros.spin_until(lambda: node.count_publishers("robot_state") and node.count_subscribers("correction"), 5)
+    return talker, poses, states, reference, corrections
+
+
 def test_on_the_controllers_clock_each_state_gets_one_correction_from_the_poses_before_it(ros) -> None:
     """period_clock robot_state: poses alone drive the law on their own clock until the controller's STATEs
     flow (the bridge arms on such a correction); from then on nothing leaves on a pose, and each robot_state
     gets exactly one correction, made from the poses since the last one and stamped with the newest of them."""
     node = compensator(ros, control_law="modal", period_clock="robot_state", control_period=0.004)
-    talker = ros.node("talker")
-    poses = talker.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
-    states = talker.create_publisher(PoseStamped, "robot_state", 10)
-    reference = talker.create_publisher(PoseStamped, "reference_pose", 10)
-    corrections = []
-    talker.create_subscription(TwistStamped, "correction", corrections.append, 100)
+    talker, poses, states, reference, corrections = controllers_clock_talker(ros, node)
     translation = np.array([0.0, 0.0, 0.45])
     covariance = np.diag([1e-10] * 3 + [1e-8] * 3)
-    assert ros.spin_until(lambda: node.count_publishers("robot_state") and node.count_subscribers("correction"), 5)
 
     def send_poses(count: int) -> int:
         """`count` fresh poses, each taken before the next is sent; the newest one's stamp (ns)."""
@@ -381,15 +388,9 @@ def test_on_the_controllers_clock_the_pose_a_state_triggered_answers_the_next_st
     its own pose answers the next one (loop_delay counts that period)."""
     period = 0.004
     node = compensator(ros, control_law="modal", period_clock="robot_state", control_period=period, max_pose_age=1.0)
-    talker = ros.node("talker")
-    poses = talker.create_publisher(PoseWithCovarianceStamped, "pose_with_covariance", 10)
-    states = talker.create_publisher(PoseStamped, "robot_state", 10)
-    reference = talker.create_publisher(PoseStamped, "reference_pose", 10)
-    corrections = []
-    talker.create_subscription(TwistStamped, "correction", corrections.append, 100)
+    talker, poses, states, reference, corrections = controllers_clock_talker(ros, node)
     translation = np.array([0.0, 0.0, 0.45])
     covariance = np.diag([1e-10] * 3 + [1e-8] * 3)
-    assert ros.spin_until(lambda: node.count_publishers("robot_state") and node.count_subscribers("correction"), 5)
     start = time.time_ns() - 40_000_000  # every stamp below in the past, and fresh (max_pose_age) for a second
     tick = int(period * 1e9)
 
