@@ -250,9 +250,7 @@ class ModalController:
             # period are chosen by where the grid is.)
             self.time = time if spacing >= ONE_POSE_A_PERIOD * T else self.time + periods * T
             self._measure(z, variance)
-        self.coasted = 0
-        self.history.append((self.time, self.x[:, 0].copy()))
-        return self._law(reference)
+        return self._measured(reference)
 
     def _update_on_tick(self, time: float, z: np.ndarray, variance: np.ndarray, reference: np.ndarray | None,
                         tick: float) -> np.ndarray:
@@ -282,6 +280,10 @@ class ModalController:
                     return self._law(reference)
                 z = self.x[:, 0] + innovation
             self._measure(z, variance)
+        return self._measured(reference)
+
+    def _measured(self, reference: np.ndarray | None) -> np.ndarray:
+        """A period that had its pose: remembered for the late poses to come, and the law run on it."""
         self.coasted = 0
         self.history.append((self.time, self.x[:, 0].copy()))
         return self._law(reference)
