@@ -11,12 +11,13 @@ def units(x: int) -> tuple[int, ...]:
 def test_an_answer_replaced_before_its_tick_is_lost_and_only_that():
     ledger = IncrementLedger()
     ledger.reset(units(0))
-    ledger.sent(1, units(10))  # answer to STATE 1, applied at tick 2
-    assert ledger.state(1, units(10))[0] == 0
-    ledger.sent(2, units(20))  # answer to STATE 2 misses tick 3 ...
+    ledger.sent(1, units(10), answered=1000)  # answer to STATE 1, applied at tick 2
+    assert ledger.state(1, units(10))[0] == 0 and ledger.lost_answered is None
+    ledger.sent(2, units(20), answered=2000)  # answer to STATE 2 misses tick 3 ...
     assert ledger.state(1, units(10))[0] == 0  # STATE 3: nothing applied, 2 is still pending
-    ledger.sent(3, units(30))  # ... and answer 3 replaces it before tick 4
+    ledger.sent(3, units(30), answered=3000)  # ... and answer 3 replaces it before tick 4
     assert ledger.state(3, units(40))[0] == 20  # STATE 4: 3 applied, 2 never was
+    assert ledger.lost_answered == 2000  # the compensator's model is told which period's answer it was
 
 
 def test_states_that_never_arrive_hide_no_motion():

@@ -69,7 +69,8 @@ class MotoPlusClient:
                  max_future_s: Callable[[], float] = lambda: 0.002, input_timeout_s: float = 0.5,
                  log: Callable[[str], None] = print, backoff_min: float = 0.1, backoff_max: float = 1.0,
                  on_sent: Callable[[tuple[int, ...], float, float], None] | None = None,
-                 await_correction: Callable[[float], None] | None = None) -> None:
+                 await_correction: Callable[[float], None] | None = None,
+                 on_lost: Callable[[np.ndarray, int], None] | None = None) -> None:
         """increment(now, the wall time of this STATE's answer): (this period's move in m and rad, the
         trigger time of the correction it comes from), or None to hold still; max_age_s, max_future_s: the
         monitor's limits on a stamp's age (two-sided);
@@ -83,6 +84,7 @@ class MotoPlusClient:
         self.rounding = mp.CarriedRounding()  # to units, each remainder carried into the next increment
         self.on_sent = on_sent
         self.await_correction = await_correction
+        self.on_lost = on_lost  # (units the controller never applied, time_us of the STATE their answer was for)
         self.increment, self.on_state, self.log = increment, on_state, log
         self.backoff_min, self.backoff_max = backoff_min, backoff_max
         self.state = DISARMED
@@ -209,9 +211,14 @@ class MotoPlusClient:
                 self.ledger.reset(body.offset)
                 return  # the arming STATE: the first CORRECTION answers the next one
             if self.state == ARMED:
-                # Counted, not re-sent: the loop measures where the arm is and corrects the loss itself;
-                # re-sending it as well corrected twice (tried: the held arm wandered by ~50 um).
-                self.counters.lost_increments += int(np.any(self.ledger.state(body.echoed_seq, body.offset)))
+                # Counted and told (on_lost: the compensator's model then counts what the controller applied), not
+                # resent: the loop makes the loss up itself, and resending it as well corrected twice (tried: the
+                # held arm wandered by ~50 um).
+                lost = self.ledger.state(body.echoed_seq, body.offset)
+                if np.any(lost):
+                    self.counters.lost_increments += 1
+                    if self.on_lost is not None and self.ledger.lost_answered is not None:
+                        self.on_lost(lost, self.ledger.lost_answered)
                 if self.await_correction is not None and not behind:
                     self.await_correction(arrived)
                 if self.state == ARMED:  # not stopped (~/stop) while it waited
@@ -286,7 +293,8 @@ class MotoPlusClient:
             try:
                 sock.sendall(mp.encode(mp.Frame(self._seq, self._peer_seq, body)))
                 if isinstance(body, mp.Correction):
-                    self.ledger.sent(self._seq, body.increment)
+                    self.ledger.sent(self._seq, body.increment,
+                                     self.last_state.time_us if self.last_state is not None else 0)
                 return True
             except OSError as exc:
                 self.last_error = f"send: {exc}"

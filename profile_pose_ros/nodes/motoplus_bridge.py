@@ -15,6 +15,7 @@ shutdown path. In `mode: calibration` the same rules apply to profile_pose_calib
 from __future__ import annotations
 
 import sys
+from collections import deque
 import threading
 import time
 
@@ -121,6 +122,8 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self._fresh = threading.Condition(self._lock)  # a correction arrived
         self.latency = LatencyWindow("trigger_to_send_ms")  # the newest correction's trigger -> its increment sent
         self._sent: list[tuple[int, tuple[int, ...]]] = []  # increments sent, not yet published
+        self._lost: list[tuple[int, np.ndarray]] = []  # (tick ns, units) the controller never applied, to publish
+        self._ticks: deque[tuple[int, float]] = deque(maxlen=64)  # (time_us, host tick) of the recent STATEs
         self.stale_periods = 0
         # armed periods whose answer carried a correction from a pose at most one period old when it left
         # (over the node's life, beside the armed periods): what the arm feels of the loop
@@ -130,6 +133,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self.state_out = LoopOutput(self.state_pub, local if local is not None and local.carries("robot_state")
                                     else None, self.get_logger())
         self.increment_pub = self.create_publisher(TwistStamped, "~/increment", 100)
+        self.lost_pub = self.create_publisher(TwistStamped, "lost_increment", 100)
         # Corrections and the sent-increment note are served straight from their wait set (direct_input.py):
         # the socket thread is waiting for each correction, and through the executor each waited behind its
         # per-wake-up bookkeeping, about a millisecond here.
@@ -151,7 +155,8 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
                                      max_future_s=lambda: self.values["max_future"],
                                      input_timeout_s=v["input_timeout"],
                                      log=lambda text: logger.warn(text, throttle_duration_sec=1.0),
-                                     on_sent=self._on_sent, await_correction=self._await_correction)
+                                     on_sent=self._on_sent, await_correction=self._await_correction,
+                                     on_lost=self._on_lost)
         if v["arm_on_start"]:
             self.client.arm()
         self.create_timer(v["diagnostics_period"], self._publish_diagnostics)
@@ -236,13 +241,27 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
             self._sent.append((int(round(stamp * 1e9)), units))
         self._sent_guard.trigger()
 
+    def _on_lost(self, units: np.ndarray, answered_us: int) -> None:
+        """Socket thread: the controller never applied `units` of the answer to its STATE at answered_us; the
+        executor publishes it (lost_increment), stamped with that STATE's tick, as robot_state was."""
+        tick = next((host for us, host in reversed(self._ticks) if us == answered_us), None)
+        if tick is None:
+            return  # older than the STATEs remembered: the compensator could not place it
+        with self._lock:
+            self._lost.append((int(round(tick * 1e9)), units))
+        self._sent_guard.trigger()
+
     def _publish_increments(self) -> None:
         """`~/increment`: each increment sent (m and rad this period, after clamping), stamped with the
-        trigger time of the newest correction in it."""
+        trigger time of the newest correction in it; `lost_increment`: what the controller never applied."""
         with self._lock:
             sent, self._sent = self._sent, []
+            lost, self._lost = self._lost, []
+        frame = self.values["base_frame"]
         for stamp_ns, units in sent:  # serialized here (core/wire/pose_cdr.py): 250 a second at the 4 ms clock
-            self.increment_pub.publish(encode_twist_cdr(mp.units_to_metres(units), stamp_ns, self.values["base_frame"]))
+            self.increment_pub.publish(encode_twist_cdr(mp.units_to_metres(units), stamp_ns, frame))
+        for stamp_ns, units in lost:
+            self.lost_pub.publish(encode_twist_cdr(mp.units_to_metres(units), stamp_ns, frame))
 
     def _on_state(self, state: mp.State, host_time: float) -> None:
         """robot_state: the tool's pose in the base frame as the controller reports it (its Rx Ry Rz angles),
@@ -250,6 +269,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self._state_arrived = time.monotonic()  # before the publish: a reply can come before it returns
         pose = np.array(mp.units_to_metres(state.pose))
         tick = self._tick_clock.host_time(state.time_us, host_time)
+        self._ticks.append((state.time_us, tick))
         serialized = encode_pose_cdr(rotation_from_controller_angles(pose[3:]), pose[:3], int(tick * 1e9),
                                      self.values["base_frame"])
         self.state_out.publish(serialized)

@@ -206,7 +206,8 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.law_stamp_ns = 0
         self.coasted = 0  # controller periods answered by the model alone (modal law, period_clock robot_state)
         self.refused = {"stale": 0, "future": 0, "frame": 0, "orientation": 0, "covariance": 0, "imprecise": 0,
-                        "range": 0, "reference": 0}
+                        "range": 0, "reference": 0, "lost_increment": 0}
+        self.lost_told = 0  # increments the bridge said the controller never applied, counted by the model
         self.last_error = np.zeros(6)
         self._lock = threading.Lock()  # composed, poses arrive on another thread than the watchdog's
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -226,6 +227,7 @@ class PdCompensatorNode(RefusalCounter, Node):
                                                 LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
             self.direct_input.add(pose_sub, self._on_pose)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
+        self.create_subscription(TwistStamped, "lost_increment", self._on_lost, 100)
         on_state = self._on_controller_period if v["period_clock"] == "robot_state" else self._on_robot_state
         if local is not None and local.carries("robot_state"):  # composed with the bridge: in its socket thread
             local.take(self.resolve_topic_name("robot_state"), on_state)
@@ -346,6 +348,24 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.coasted += 1
         self.corrections += 1
         self._publish(self.modal.limit(self.gains.arrays[2]), self.law_stamp_ns)
+
+    def _on_lost(self, msg: TwistStamped) -> None:
+        """The bridge: the controller never applied this increment (the tool's motion, m and rad) of its answer
+        to the period stamped. The modal law's model counts the commands the controller applied (lost())."""
+        if self.modal is None:
+            return
+        motion = np.array([msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z,
+                           msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z])
+        # at most an answer's worth: anything larger is not one of ours (a stray publisher, a unit error)
+        bound = 2.0 * self.gains.arrays[2] * self.values["control_period"]
+        if msg.header.frame_id != self.values["base_frame"] or not np.all(np.abs(motion) <= bound):
+            self._refuse("lost_increment", f"lost_increment ignored: frame '{msg.header.frame_id}', motion "
+                                           f"{np.round(motion, 6).tolist()} (at most {np.round(bound, 6).tolist()})")
+            return
+        with self._lock:
+            self.modal.lost(self.mounting.profiler_velocity(motion, self.last_rotation),
+                            msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+            self.lost_told += 1
 
     def _on_pose(self, serialized: bytes) -> None:
         with self._lock:
@@ -528,6 +548,7 @@ class PdCompensatorNode(RefusalCounter, Node):
         if self.modal is not None:
             values["poses_within_a_period"] = self.modal.skipped  # not used: one pose a period drives the law
             values["periods_coasted"] = self.coasted
+            values["lost_increments_told"] = self.lost_told
         self.diagnostics_pub.publish(diagnostic_array(self, "compensator", "pd_compensator",
                                                       level, message, values))
 

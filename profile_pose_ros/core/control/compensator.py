@@ -77,6 +77,13 @@ class Mounting:
         lever = self.rotation @ profiler_rotation @ self._lever_in_profiler  # base coordinates
         return np.concatenate([velocity[:3] - np.cross(velocity[3:], lever), velocity[3:]])
 
+    def profiler_velocity(self, tool_velocity: np.ndarray, profiler_rotation: np.ndarray) -> np.ndarray:
+        """tool_velocity's inverse: how the profiler origin moves when the tool moves so."""
+        if not any(self.profiler_in_tool[:3]) or not np.any(tool_velocity[3:]):
+            return tool_velocity
+        lever = self.rotation @ profiler_rotation @ self._lever_in_profiler
+        return np.concatenate([tool_velocity[:3] + np.cross(tool_velocity[3:], lever), tool_velocity[3:]])
+
 
 def _read_only(array: np.ndarray) -> np.ndarray:
     array.flags.writeable = False
