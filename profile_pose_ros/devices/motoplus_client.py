@@ -204,6 +204,8 @@ class MotoPlusClient:
             self.counters.states += 1
             self.last_state, self.last_state_time = body, now
             arrived = time.time()
+            if self.state == ARMED:  # before on_state: a composed compensator's law for this STATE knows of it
+                self._note_losses(body)
             self.on_state(body, arrived)
             if self.state == ARMING and body.status & mp.ARMED:
                 self.state = ARMED
@@ -211,14 +213,6 @@ class MotoPlusClient:
                 self.ledger.reset(body.offset)
                 return  # the arming STATE: the first CORRECTION answers the next one
             if self.state == ARMED:
-                # Counted and told (on_lost: the compensator's model then counts what the controller applied), not
-                # resent: the loop makes the loss up itself, and resending it as well corrected twice (tried: the
-                # held arm wandered by ~50 um).
-                lost = self.ledger.state(body.echoed_seq, body.offset)
-                if np.any(lost):
-                    self.counters.lost_increments += 1
-                    if self.on_lost is not None and self.ledger.lost_answered is not None:
-                        self.on_lost(lost, self.ledger.lost_answered)
                 if self.await_correction is not None and not behind:
                     self.await_correction(arrived)
                 if self.state == ARMED:  # not stopped (~/stop) while it waited
@@ -234,6 +228,16 @@ class MotoPlusClient:
         elif isinstance(body, mp.Stop):
             self._arm_requested.clear()
             self.state = CONNECTED
+
+    def _note_losses(self, state: mp.State) -> None:
+        """Counted and told (on_lost: the compensator's model then counts what the controller applied), not
+        resent: the loop makes the loss up itself, and resending it as well corrected twice (tried: the held
+        arm wandered by ~50 um)."""
+        lost = self.ledger.state(state.echoed_seq, state.offset)
+        if np.any(lost):
+            self.counters.lost_increments += 1
+            if self.on_lost is not None and self.ledger.lost_answered is not None:
+                self.on_lost(lost, self.ledger.lost_answered)
 
     def _correct(self, state_arrived: float) -> None:
         now = time.time()

@@ -45,7 +45,7 @@ def profile_input_qos(depth: int) -> QoSProfile:
                       durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
 
 
-LOOP_TOPICS = ("profile", "pose_with_covariance", "correction", "robot_state")
+LOOP_TOPICS = ("profile", "pose_with_covariance", "correction", "robot_state", "lost_increment")
 
 
 class LocalTopics:

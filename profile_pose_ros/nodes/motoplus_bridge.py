@@ -122,7 +122,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self._fresh = threading.Condition(self._lock)  # a correction arrived
         self.latency = LatencyWindow("trigger_to_send_ms")  # the newest correction's trigger -> its increment sent
         self._sent: list[tuple[int, tuple[int, ...]]] = []  # increments sent, not yet published
-        self._lost: list[tuple[int, np.ndarray]] = []  # (tick ns, units) the controller never applied, to publish
+        self._lost: list[bytes] = []  # lost_increment messages, serialized, to publish
         self._ticks: deque[tuple[int, float]] = deque(maxlen=64)  # (time_us, host tick) of the recent STATEs
         self.stale_periods = 0
         # armed periods whose answer carried a correction from a pose at most one period old when it left
@@ -133,7 +133,10 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         self.state_out = LoopOutput(self.state_pub, local if local is not None and local.carries("robot_state")
                                     else None, self.get_logger())
         self.increment_pub = self.create_publisher(TwistStamped, "~/increment", 100)
-        self.lost_pub = self.create_publisher(TwistStamped, "lost_increment", 100)
+        # composed with the compensator, a loss reaches its model in this thread before the next STATE's law runs
+        self.lost_out = LoopOutput(self.create_publisher(TwistStamped, "lost_increment", 100),
+                                   local if local is not None and local.carries("lost_increment") else None,
+                                   self.get_logger())
         # Corrections and the sent-increment note are served straight from their wait set (direct_input.py):
         # the socket thread is waiting for each correction, and through the executor each waited behind its
         # per-wake-up bookkeeping, about a millisecond here.
@@ -247,8 +250,10 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         tick = next((host for us, host in reversed(self._ticks) if us == answered_us), None)
         if tick is None:
             return  # older than the STATEs remembered: the compensator could not place it
+        serialized = encode_twist_cdr(mp.units_to_metres(units), int(round(tick * 1e9)), self.values["base_frame"])
+        self.lost_out.hand_over(serialized)
         with self._lock:
-            self._lost.append((int(round(tick * 1e9)), units))
+            self._lost.append(serialized)
         self._sent_guard.trigger()
 
     def _publish_increments(self) -> None:
@@ -260,8 +265,8 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         frame = self.values["base_frame"]
         for stamp_ns, units in sent:  # serialized here (core/wire/pose_cdr.py): 250 a second at the 4 ms clock
             self.increment_pub.publish(encode_twist_cdr(mp.units_to_metres(units), stamp_ns, frame))
-        for stamp_ns, units in lost:
-            self.lost_pub.publish(encode_twist_cdr(mp.units_to_metres(units), stamp_ns, frame))
+        for serialized in lost:
+            self.lost_out.publish(serialized)
 
     def _on_state(self, state: mp.State, host_time: float) -> None:
         """robot_state: the tool's pose in the base frame as the controller reports it (its Rx Ry Rz angles),

@@ -33,7 +33,8 @@ from ..core.timing.latency_window import LatencyWindow
 from ..core.commissioning.first_motion import FirstMotionCheck, ProbeDesign
 from ..core.control.modal_control import ONE_POSE_A_PERIOD, SPACING_WINDOW, ModalController, ModalDesign
 from ..core.control.period_fusion import PeriodPose, fuse_period
-from ..core.wire.pose_cdr import CdrFormatError, decode_pose_with_covariance_cdr, decode_stamp, encode_twist_cdr
+from ..core.wire.pose_cdr import (CdrFormatError, decode_pose_with_covariance_cdr, decode_stamp, decode_twist_cdr,
+                                   encode_twist_cdr)
 from ..core.model.rotation import rotation_from_quaternion_xyzw
 from ..core.estimation.result import position_sigma
 from .diagnostics import ERROR, OK, WARN, RefusalCounter, diagnostic_array
@@ -227,7 +228,12 @@ class PdCompensatorNode(RefusalCounter, Node):
                                                 LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
             self.direct_input.add(pose_sub, self._on_pose)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
-        self.create_subscription(TwistStamped, "lost_increment", self._on_lost, 100)
+        if local is not None and local.carries("lost_increment"):  # composed with the bridge: in its socket thread
+            local.take(self.resolve_topic_name("lost_increment"), self._on_lost)
+        else:  # served directly: through the executor a loss would reach the model up to 50 ms (12 periods) late
+            lost_sub = self.create_subscription(TwistStamped, "lost_increment", self._on_lost, 100,
+                                                callback_group=ServedDirectly(), raw=True)
+            self.direct_input.add(lost_sub, self._on_lost)
         on_state = self._on_controller_period if v["period_clock"] == "robot_state" else self._on_robot_state
         if local is not None and local.carries("robot_state"):  # composed with the bridge: in its socket thread
             local.take(self.resolve_topic_name("robot_state"), on_state)
@@ -349,22 +355,24 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.corrections += 1
         self._publish(self.modal.limit(self.gains.arrays[2]), self.law_stamp_ns)
 
-    def _on_lost(self, msg: TwistStamped) -> None:
+    def _on_lost(self, serialized: bytes) -> None:
         """The bridge: the controller never applied this increment (the tool's motion, m and rad) of its answer
         to the period stamped. The modal law's model counts the commands the controller applied (lost())."""
         if self.modal is None:
             return
-        motion = np.array([msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z,
-                           msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z])
+        try:
+            stamp_ns, frame_id, motion = decode_twist_cdr(serialized)
+        except CdrFormatError as exc:
+            self.get_logger().error(f"malformed lost_increment ignored: {exc}", throttle_duration_sec=1.0)
+            return
         # at most an answer's worth: anything larger is not one of ours (a stray publisher, a unit error)
         bound = 2.0 * self.gains.arrays[2] * self.values["control_period"]
-        if msg.header.frame_id != self.values["base_frame"] or not np.all(np.abs(motion) <= bound):
-            self._refuse("lost_increment", f"lost_increment ignored: frame '{msg.header.frame_id}', motion "
+        if frame_id != self.values["base_frame"] or not np.all(np.abs(motion) <= bound):
+            self._refuse("lost_increment", f"lost_increment ignored: frame '{frame_id}', motion "
                                            f"{np.round(motion, 6).tolist()} (at most {np.round(bound, 6).tolist()})")
             return
         with self._lock:
-            self.modal.lost(self.mounting.profiler_velocity(motion, self.last_rotation),
-                            msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+            self.modal.lost(self.mounting.profiler_velocity(motion, self.last_rotation), stamp_ns * 1e-9)
             self.lost_told += 1
 
     def _on_pose(self, serialized: bytes) -> None:
