@@ -234,12 +234,13 @@ def test_a_planned_step_settles_in_a_fraction_of_the_lagged_one(axis: int, size:
 
 
 @pytest.mark.parametrize("scale", [0.8, 1.2])
-def test_a_planned_step_with_the_modes_frequency_20_percent_off_stays_within_5_percent(scale: float) -> None:
+def test_a_planned_step_with_the_modes_frequency_20_percent_off_stays_within_2_percent(scale: float) -> None:
+    """The issue allows 5 %; ZVDD alone left the barely damped y 3.7 % here, one derivative more 1.1-1.5 %."""
     frequency = tuple(10.0 * scale for _ in range(6))
     for axis in (0, 1, 2):
         t, y = run_loop("modal", axis=axis, target=1e-3, seconds=1.5,
                         model=dict(damping=SIM_DAMPING, frequency_hz=frequency, reference_shaping="zvdd"))
-        assert step_metrics(t, y, 1e-3)["Overshoot"] <= 5.0
+        assert step_metrics(t, y, 1e-3)["Overshoot"] <= 2.0
         assert np.mean(y[t > 1.3]) == pytest.approx(1e-3, abs=10e-6)  # stable, and there
 
 
