@@ -5,10 +5,10 @@ With a profiler faster than the controller, the correction a STATE needs is made
 since the previous STATE. As two processes that is a round trip (robot_state out, the correction back) of two
 publishes and two wake-ups, inside the controller's period; composed, each STATE reaches the compensator as a
 call in the socket thread that received it, the poses of the period are fused and the law runs there, and the
-increment leaves right after (local_topics.py carries `robot_state`, `correction` and `lost_increment`; all still go
-over DDS to any other subscriber). Poses come over DDS from the estimator (profiler_estimator, or pose_estimator), taken by
-this process's main thread with the compensator's watchdog; the bridge's sent increments are published there
-too. Each node keeps its name, parameters and /diagnostics (docs/performance.md has the figures).
+increment leaves right after (local_topics.py carries `robot_state`, `correction` and `lost_increment`; all
+still go over DDS to any other subscriber). Poses come over DDS from the estimator (profiler_estimator, or
+pose_estimator), taken by this process's main thread with the compensator's watchdog; the bridge's sent
+increments are published there too. Each node keeps its name, parameters and /diagnostics (docs/performance.md has the figures).
 
     compensator_bridge --ros-args --params-file config/cell.yaml -p pd_compensator.period_clock:=robot_state
 """

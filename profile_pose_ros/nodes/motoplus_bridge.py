@@ -15,9 +15,9 @@ shutdown path. In `mode: calibration` the same rules apply to profile_pose_calib
 from __future__ import annotations
 
 import sys
-from collections import deque
 import threading
 import time
+from collections import deque
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray

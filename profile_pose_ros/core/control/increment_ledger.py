@@ -2,10 +2,10 @@
 
 The controller applies the newest CORRECTION it holds at each period (docs/motoplus_protocol.md, rule 3).
 An answer that reaches it after its period's tick is still pending when the next answer arrives and is
-replaced: its motion is lost, and the loop would see it only as an error a few periods later: the bridge counts the losses,
-`lost_increments`, and tells the compensator, whose model then counts the commands the controller applied
-(`lost_increment`, ModalController.lost); it does not resend them. Every STATE says
-which CORRECTION was applied last (`echoed_seq`) and the total offset applied since HELLO, so the bridge
+replaced: its motion is lost, and the loop would see it only as an error a few periods later. The bridge
+counts the losses (`lost_increments`) and tells the compensator (`lost_increment`), whose model then counts
+the commands the controller applied (ModalController.lost); it does not resend them. Every STATE says which
+CORRECTION was applied last (`echoed_seq`) and the total offset applied since HELLO, so the bridge
 can tell exactly what was lost: of the corrections up to the echoed one, what was sent minus what the
 offset grew by. STATEs that never arrive do not matter: the offset covers every period since the last one
 that did.

@@ -23,11 +23,11 @@ A new reference can be reached along a planned command (reference_shaping "zvdd"
 FEEDFORWARD_SPEED_SHARE of the speed limit, convolved with the ZVDD shaper of each axis's mode, sent as
 feedforward increments, so the mode is brought to the target without ringing in about 1.5 of its periods.
 ZVDD rather than the shorter ZVD: it tolerates the model's frequency 20 % off; on a barely damped axis
-(LIGHTLY_DAMPED) one derivative more (docs/robot_side.md). The model runs the same increments into a reference state
-(the arm as the model expects it to move), and the LQR feeds back only the estimated state's difference from
-it: what the model misses, a disturbance, the ringing of a mode that is off its model. The plan starts at
-rest where the arm is being commanded, so a ringing arm is damped, and a new reference is planned from the
-last one's end. The default, "lag", is the feedback alone towards a reference passed through a first-order
+(LIGHTLY_DAMPED) one derivative more (docs/robot_side.md). The model runs the same increments into a
+reference state (the arm as the model expects it to move), and the LQR feeds back only the estimated state's
+difference from it: what the model misses, a disturbance, the ringing of a mode that is off its model. The
+plan starts at rest where the arm is being commanded, so a ringing arm is damped, and a new reference is
+planned from the last one's end. The default, "lag", is the feedback alone towards a reference passed through a first-order
 filter that starts where the arm is: it waits for that filter (several time constants to settle), but its
 slow approach is what Table IV's post-rise spectrum (Mf) rewards, and a planned step needs every increment
 to arrive in its period (docs/robot_side.md has the figures).
@@ -57,10 +57,10 @@ MAX_GAP = 4  # periods without a pose after which the filter starts again
 # The feedforward plans its ramp at this share of the speed limit: the feedback keeps the rest for corrections.
 FEEDFORWARD_SPEED_SHARE = 0.8
 REFERENCE_SHAPINGS = ("zvdd", "lag")
-# Below this damping ratio an axis's plan goes through one zero derivative more (ZVDDD): what a shaper leaves
-# of the mode when the model's frequency is off rings there for seconds, beyond the feedback's reach within a
-# 0.3 s settle (a frequency 20 % low left ZVDD 5.6 % of the vibration, ZVDDD 2.1 %; on sim_cell's y, zeta 0.02,
-# offline: Mp 3.7 -> 1.1 %, the plan 50 ms longer). A well damped axis damps its own remainder within a cycle.
+# Below this damping ratio an axis's plan goes through one zero derivative more (ZVDDD, half a period longer):
+# what a shaper leaves of the mode when the model's frequency is off rings there for seconds, beyond what the
+# feedback damps within a 0.3 s settle (with the frequency 20 % low ZVDD leaves 5.6 % of the vibration, ZVDDD
+# 2.1 %). A well damped axis damps its own remainder within a cycle.
 LIGHTLY_DAMPED = 0.1
 SPACING_WINDOW = 15  # recent intervals between poses whose median is the poses' spacing
 ONE_POSE_A_PERIOD = 0.98  # poses this close to a period apart (median): one a period, triggered by the controller
@@ -319,11 +319,10 @@ class ModalController:
         """The controller never applied `motion` (m, rad per axis) of the answer to its period at `answered`
         (that STATE's tick or trigger on this clock; None: not known, taken as at least as old as the model's
         command history). The model's commands since then are lowered by it, so the feedback acts on what
-        the controller applied and makes the loss up as the LQR weighs it, the mode damped. Learnt only as an
-        offset, a lost share of a planned step took up to 1.4 s to make up on sim_cell's barely damped y axis
-        (0.4 s told; offline, 3 % of the answers lost). Not resent at once (the plan still counts it as sent,
-        so the feedback made it up as well: 7.7 % overshoot on y), nor planned again through the shaper with
-        the plan moved back (the plan then takes the loss's kick unshaped and rings with it: 8 %)."""
+        the controller applied and makes the loss up as the LQR weighs it, the mode damped; untold, the filter
+        learns a loss only as a slow drift of its offset. Not resent (the plan still counts it as sent, so the
+        feedback would make it up as well), nor planned again through the shaper with the plan moved back (the
+        plan would then carry the loss's own unshaped kick and ring with it): docs/robot_side.md."""
         motion = np.asarray(motion, dtype=float)
         if self.time is None or motion.shape != (6,) or not np.all(np.isfinite(motion)):
             return
