@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 from profile_pose_ros.core.control.compensator import (AxisKalman, Gains, InputShaper, pd_velocity, zero_vibration_impulses,
                                                        zvd_impulses)
 from profile_pose_ros.core.control.modal_control import (MAX_GAP, ModalController, ModalDesign, axis_model,
-                                                         shaped_step_increments)
+                                                         effort_at_period, lqr_gain, shaped_step_increments)
 from profile_pose_ros.core.control.period_fusion import PeriodPose, fuse_period
 from profile_pose_ros.sim.arm import Arm, ArmModel
 
@@ -54,6 +54,22 @@ def test_the_discrete_model_matches_the_continuous_arm(periods_of_delay: float) 
             t0 = t1
     assert x[0] == pytest.approx(state[0], abs=1e-9)
     assert x[1] == pytest.approx(state[1], abs=1e-7)
+
+
+@pytest.mark.parametrize("effort", [10.0, 30.0])
+def test_one_effort_gives_one_loop_at_any_control_period(effort: float) -> None:
+    """The closed loop's poles in continuous time (the mode's and the command's, beside the delay's) at 4 ms
+    equal those at 12 ms when the effort is scaled to the period, and not when it is taken as it is."""
+    def poles(period: float, weight: float) -> np.ndarray:
+        A, B = axis_model(10.0, 0.018, period, period + ArmModel().delay_s)
+        closed = np.linalg.eigvals(A - np.outer(B, lqr_gain(A, B, 10.0, weight)))
+        s = np.log(closed[np.abs(closed) > 0.2].astype(complex)) / period  # the delay's poles sit at 0
+        return np.array(sorted(s, key=lambda v: (v.imag, v.real)))
+
+    at_12ms = poles(0.012, effort_at_period(effort, 0.012))
+    assert effort_at_period(effort, 0.012) == effort
+    np.testing.assert_allclose(poles(0.004, effort_at_period(effort, 0.004)), at_12ms, rtol=0.02)
+    assert np.max(np.abs(poles(0.004, effort) - at_12ms)) > 0.2 * np.max(np.abs(at_12ms))
 
 
 def test_the_model_settles_where_it_is_commanded() -> None:

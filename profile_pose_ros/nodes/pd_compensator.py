@@ -87,7 +87,8 @@ PARAMETERS = [
           "open-loop step's; the paper's Table IV for x y z).", read_only=True),
     Param("modal_effort", [10.0, 30.0, 10.0, 10.0, 10.0, 10.0], "modal: the LQR's weight on each increment "
           "against the mode's energy, per axis: larger is slower and passes less of the estimate's noise to the "
-          "arm (y: the gauge's noisy axis).", read_only=True),
+          "arm (y: the gauge's noisy axis). Given for a 12 ms period: at another control_period it is scaled by "
+          "(0.012 / control_period)^2, which keeps the same loop.", read_only=True),
     Param("modal_acceleration_psd", [1e-3] * 6, "modal: the filter's acceleration noise per axis "
           "((m/s^2)^2/Hz; rad the same): what the model does not predict.", read_only=True),
     Param("modal_offset_walk", [1e-5] * 6, "modal: how fast the filter lets the arm's offset from the commands "

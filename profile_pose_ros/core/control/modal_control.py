@@ -62,6 +62,7 @@ REFERENCE_SHAPINGS = ("zvdd", "lag")
 # feedback damps within a 0.3 s settle (with the frequency 20 % low ZVDD leaves 5.6 % of the vibration, ZVDDD
 # 2.1 %). A well damped axis damps its own remainder within a cycle.
 LIGHTLY_DAMPED = 0.1
+EFFORT_PERIOD_S = 0.012  # the period ModalDesign.effort is given for (the paper's 83.3 Hz cell)
 SPACING_WINDOW = 15  # recent intervals between poses whose median is the poses' spacing
 ONE_POSE_A_PERIOD = 0.98  # poses this close to a period apart (median): one a period, triggered by the controller
 
@@ -69,7 +70,8 @@ ONE_POSE_A_PERIOD = 0.98  # poses this close to a period apart (median): one a p
 @dataclass(frozen=True)
 class ModalDesign:
     """Per axis (x y z rx ry rz): the mode's natural frequency (Hz) and damping ratio, the LQR's effort
-    weight (larger: smaller increments, less of the estimate's noise in the arm, slower), the filter's
+    weight (larger: smaller increments, less of the estimate's noise in the arm, slower; on an increment of an
+    EFFORT_PERIOD_S period, the same loop at any period: effort_at_period), the filter's
     acceleration noise ((m/s^2)^2/Hz) and the offset's random walk (m per period); and for all axes the
     control period, the delay from a pose's stamp to the arm moving on its increment, and the reference
     filter's time constant (s)."""
@@ -145,6 +147,15 @@ def axis_model(frequency_hz: float, damping: float, period_s: float, loop_delay_
     return A, B
 
 
+def effort_at_period(effort: float, period_s: float) -> float:
+    """The LQR's weight on one increment at `period_s` for an effort given at EFFORT_PERIOD_S. Summed over a
+    second, the mode's energy counts once a period and an increment is the velocity times the period, so the
+    weight that asks for the same velocities, the same loop, grows as 1 / period^2. Taken as it is, an effort
+    tuned at 12 ms made the 4 ms loop a far more aggressive one, which passed more of the estimate's noise to
+    the arm and rang the barely damped y further when the model was off (docs/robot_side.md)."""
+    return effort * (EFFORT_PERIOD_S / period_s) ** 2
+
+
 def lqr_gain(A: np.ndarray, B: np.ndarray, frequency_hz: float, effort: float) -> np.ndarray:
     """Gain K (increment = -K e) minimising the sum of p^2 + (v / w)^2 (the mode's energy, in m^2) and
     effort * increment^2."""
@@ -170,7 +181,7 @@ class ModalController:
         models = [axis_model(f, z, T, design.loop_delay_s) for f, z in zip(design.frequency_hz, design.damping)]
         n = models[0][0].shape[0]
         self.n = n
-        self.gain = np.array([lqr_gain(A, B, f, r) for (A, B), f, r
+        self.gain = np.array([lqr_gain(A, B, f, effort_at_period(r, T)) for (A, B), f, r
                               in zip(models, design.frequency_hz, design.effort)])  # (6, n)
         # the filter's model: the n states above and the offset d, which enters wherever a command does
         self.A_plan = np.array([A for A, _ in models])  # the reference state's model: no offset
