@@ -1,6 +1,7 @@
 """Shared fixtures: the shipped gauge, seeded RNGs, and a fresh rclpy Context per test."""
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -29,6 +30,16 @@ def rng() -> np.random.Generator:
 
 
 unique_domain_id = fresh_domain_id  # distinct per test, and from every Graph of this pytest process
+
+
+def wait_for(condition, timeout: float = 10.0) -> bool:
+    """Poll a condition set by other threads (a client's and a controller's, no ROS executor), on the local
+    clock, until it holds or `timeout` passes."""
+    done = threading.Event()
+    deadline = time.monotonic() + timeout
+    while not condition() and time.monotonic() < deadline:
+        done.wait(0.005)
+    return bool(condition())
 
 
 def paced(action, period: float = 0.005):

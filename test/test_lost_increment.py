@@ -3,7 +3,6 @@ sim_cell's robot controller in this process: its own count of replaced answers i
 from __future__ import annotations
 
 import threading
-import time
 
 import numpy as np
 
@@ -11,6 +10,8 @@ from profile_pose_ros.core.wire import motoplus_protocol as mp
 from profile_pose_ros.devices.motoplus_client import MotoPlusClient, SessionLimits
 from profile_pose_ros.sim.arm import Arm
 from profile_pose_ros.sim.robot_controller import RobotController
+
+from conftest import wait_for
 
 STEP_UM = 20  # each answer's increment on x
 
@@ -29,14 +30,6 @@ class OneAnswerLate(MotoPlusClient):
             self.held = (body.increment, self.last_state.time_us)
             threading.Event().wait(1.5 * self.limits.period_s)
         return super()._send(body)
-
-
-def wait_for(condition, timeout: float = 10.0) -> bool:
-    """Poll a condition set by the client's and controller's own threads (no ROS executor here)."""
-    deadline = time.monotonic() + timeout
-    while not condition() and time.monotonic() < deadline:
-        threading.Event().wait(0.005)
-    return bool(condition())
 
 
 def test_an_answer_replaced_before_its_tick_is_told_with_the_state_it_answered() -> None:

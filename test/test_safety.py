@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import signal
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -21,7 +20,7 @@ from profile_pose_ros.sim.robot_controller import DEFAULT_LIMITS, RobotControlle
 from profile_pose_ros.tools import processes
 from profile_pose_ros.tools.graph import MODULES, ros_params
 
-from conftest import unique_domain_id
+from conftest import unique_domain_id, wait_for
 
 STEP, BOUND = (200,) * 3 + (100,) * 3, (5000,) * 3 + (2000,) * 3
 
@@ -95,15 +94,6 @@ def cell():
     c = Cell()
     yield c
     c.close()
-
-
-def wait_for(condition, timeout: float = 10.0) -> bool:
-    """Poll a condition set by the client's and controller's own threads (no ROS executor here)."""
-    done = threading.Event()
-    deadline = time.monotonic() + timeout
-    while not condition() and time.monotonic() < deadline:
-        done.wait(0.005)
-    return bool(condition())
 
 
 def test_a_steady_push_stops_at_the_offset_bound_without_a_controller_fault(cell) -> None:

@@ -229,12 +229,13 @@ class PdCompensatorNode(RefusalCounter, Node):
                                                 LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
             self.direct_input.add(pose_sub, self._on_pose)
         self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
-        if local is not None and local.carries("lost_increment"):  # composed with the bridge: in its socket thread
-            local.take(self.resolve_topic_name("lost_increment"), self._on_lost)
-        else:  # served directly: through the executor a loss would reach the model up to 50 ms (12 periods) late
-            lost_sub = self.create_subscription(TwistStamped, "lost_increment", self._on_lost, 100,
-                                                callback_group=ServedDirectly(), raw=True)
-            self.direct_input.add(lost_sub, self._on_lost)
+        if self.modal is not None:  # the PD law has no model of the commands it sent to correct
+            if local is not None and local.carries("lost_increment"):  # composed with the bridge: its socket thread
+                local.take(self.resolve_topic_name("lost_increment"), self._on_lost)
+            else:  # served directly: through the executor a loss would reach the model up to 50 ms (12 periods) late
+                lost_sub = self.create_subscription(TwistStamped, "lost_increment", self._on_lost, 100,
+                                                    callback_group=ServedDirectly(), raw=True)
+                self.direct_input.add(lost_sub, self._on_lost)
         on_state = self._on_controller_period if v["period_clock"] == "robot_state" else self._on_robot_state
         if local is not None and local.carries("robot_state"):  # composed with the bridge: in its socket thread
             local.take(self.resolve_topic_name("robot_state"), on_state)
@@ -359,8 +360,6 @@ class PdCompensatorNode(RefusalCounter, Node):
     def _on_lost(self, serialized: bytes) -> None:
         """The bridge: the controller never applied this increment (the tool's motion, m and rad) of its answer
         to the period stamped. The modal law's model counts the commands the controller applied (lost())."""
-        if self.modal is None:
-            return
         try:
             stamp_ns, frame_id, motion = decode_twist_cdr(serialized)
         except CdrFormatError as exc:

@@ -27,10 +27,10 @@ ZVDD rather than the shorter ZVD: it tolerates the model's frequency 20 % off; o
 reference state (the arm as the model expects it to move), and the LQR feeds back only the estimated state's
 difference from it: what the model misses, a disturbance, the ringing of a mode that is off its model. The
 plan starts at rest where the arm is being commanded, so a ringing arm is damped, and a new reference is
-planned from the last one's end. The default, "lag", is the feedback alone towards a reference passed through a first-order
-filter that starts where the arm is: it waits for that filter (several time constants to settle), but its
-slow approach is what Table IV's post-rise spectrum (Mf) rewards, and a planned step needs every increment
-to arrive in its period (docs/robot_side.md has the figures).
+planned from the last one's end. The default, "lag", is the feedback alone towards a reference passed through
+a first-order filter that starts where the arm is: it waits for that filter (several time constants to
+settle), but its slow approach is what Table IV's post-rise spectrum (Mf) rewards, and a planned step needs
+every increment to arrive in its period (docs/robot_side.md has the figures).
 One pose per control period drives the law: the first pose at least a period after the one that started
 the previous period, less half the poses' spacing (the median of the last SPACING_WINDOW intervals). A
 cell that triggers the profiler each period has one pose a period; a profiler on its own faster clock
@@ -326,26 +326,23 @@ class ModalController:
         self.history.append((self.time, self.x[:, 0].copy()))
         return self._law(reference)
 
-    def lost(self, motion: np.ndarray, answered: float | None = None) -> None:
+    def lost(self, motion: np.ndarray, answered: float) -> None:
         """The controller never applied `motion` (m, rad per axis) of the answer to its period at `answered`
-        (that STATE's tick or trigger on this clock; None: not known, taken as at least as old as the model's
-        command history). The model's commands since then are lowered by it, so the feedback acts on what
-        the controller applied and makes the loss up as the LQR weighs it, the mode damped; untold, the filter
-        learns a loss only as a slow drift of its offset. Not resent (the plan still counts it as sent, so the
-        feedback would make it up as well), nor planned again through the shaper with the plan moved back (the
-        plan would then carry the loss's own unshaped kick and ring with it): docs/robot_side.md."""
+        (that STATE's tick or trigger on this clock). The model's commands since then are lowered by it, so the
+        feedback acts on what the controller applied and makes the loss up as the LQR weighs it, the mode
+        damped; untold, the filter learns a loss only as a slow drift of its offset. Not resent (the plan still
+        counts it as sent, so the feedback would make it up as well), nor planned again through the shaper with
+        the plan moved back (the plan would then carry the loss's own unshaped kick and ring with it):
+        docs/robot_side.md."""
         motion = np.asarray(motion, dtype=float)
         if self.time is None or motion.shape != (6,) or not np.all(np.isfinite(motion)):
             return
-        newest = self.n - 1
-        oldest = 2
         latest = self.last_tick if self.last_tick is not None else self.time
-        if answered is not None:
-            # the answer's increment joined the commands at the period after `answered`; each period since
-            # moved it one slot older
-            periods_ago = max(0, int(round((latest - answered) / self.design.period_s)) - 1)
-            oldest = max(2, newest - periods_ago)
-        self.x[:, oldest:newest + 1] -= motion[:, None]
+        # the answer's increment joined the commands at the period after `answered`, and each period since moved
+        # it one slot older: the slots from there to the newest hold it (all the command slots, 2 .. n-1, at most)
+        periods_ago = max(0, int(round((latest - answered) / self.design.period_s)) - 1)
+        newest = self.n - 1
+        self.x[:, max(2, newest - periods_ago):newest + 1] -= motion[:, None]
 
     def _innovation_at(self, time: float, z: np.ndarray) -> np.ndarray | None:
         """z's difference from the filter's position estimate of the period nearest its time (None: no longer
