@@ -18,18 +18,19 @@ def run(kernel, points, gauge, opt):
     n = gauge.n_ridges
     outs = [np.empty((n, 2)), np.empty((3, 3)), np.empty(3), np.empty((6, 6)), np.empty((3, 3)), np.empty(3),
             np.empty((n, 2)), np.empty((n, 2)), np.zeros(4)]
-    status = kernel(points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, opt, *outs)
+    status = kernel(points, gauge.q, gauge.u, gauge.w, *gauge.kernel_faces, gauge.width, gauge.length, opt, *outs)
     return status, outs
 
 
 def test_prebuilt_and_jit_kernels_agree(gauge, rng):
     """On the shipped gauge (one call, well determined) and on random five-ridge gauges, where about half
-    the poses are poorly determined and the basin search runs inside the call."""
+    the poses are poorly determined and the basin search runs inside the call; with the corner model and
+    with the dense refinement in the same call."""
     module = aot.load()
     assert module is not None, "the prebuilt estimator could not be built on this machine"
-    opt = EstimatorOptions().kernel_vector
     searched = 0
-    for other in [gauge] + [random_gauge(5, rng) for _ in range(3)]:
+    for k, other in enumerate([gauge] + [random_gauge(5, rng) for _ in range(3)]):
+        opt = EstimatorOptions(refine_model=("corners", "dense")[k % 2]).kernel_vector
         for _ in range(15):
             points = render_profile(other, *sample_pose(other, rng), noise_std=5e-6, rng=rng)
             (status_a, outs_a), (status_j, outs_j) = (run(module.estimate, points, other, opt),
@@ -42,7 +43,7 @@ def test_prebuilt_and_jit_kernels_agree(gauge, rng):
             for a, j in zip(outs_a, outs_j):
                 assert np.allclose(a, j, rtol=1e-12, atol=1e-15, equal_nan=True)
     assert searched > 0
-    status, _ = run(module.estimate, np.full((100, 2), np.nan), gauge, opt)
+    status, _ = run(module.estimate, np.full((100, 2), np.nan), gauge, EstimatorOptions().kernel_vector)
     assert status[0] != 0 and np.isnan(status[5])
 
 

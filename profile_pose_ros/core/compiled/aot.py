@@ -157,16 +157,17 @@ def build_into(directory: Path) -> None:
     array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
     frozen2, frozen1 = types.Array(f8, 2, "C", readonly=True), types.Array(f8, 1, "C", readonly=True)
     signature = types.Tuple((types.int64, types.int64, f8, f8, f8, f8, types.int64))(
-        array2, frozen2, frozen1, frozen1, f8, f8, frozen1, array2, array2, array1, array2, array2, array1, array2,
-        array2, array1)
+        array2, frozen2, frozen1, frozen1, array2, array1, array1, array1, f8, f8, frozen1, array2, array2, array1, array2, array2,
+        array1, array2, array2, array1)
     compiler = CC(MODULE)
     compiler.output_dir = str(directory)
     compiler.target_cpu = "host"  # built on the machine that runs it
 
     @compiler.export("estimate", signature)
-    def estimate(points, q, u, w, width, length, opt, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info):
-        return pipeline_kernel.estimate(points, q, u, w, width, length, opt, corners, rot, t, cov, cf_rot, cf_t,
-                                        cf_res, res, info)
+    def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, rot, t, cov, cf_rot,
+                 cf_t, cf_res, res, info):
+        return pipeline_kernel.estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt,
+                                        corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
 
     boolean, int64 = types.boolean, types.int64
     refine_signature = types.Tuple((int64, int64))(

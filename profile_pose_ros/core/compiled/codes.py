@@ -22,6 +22,8 @@ INCONSISTENT = 15  # the corners' residuals are far beyond what the profile's ow
 AMBIGUOUS = 16  # four ridges: another minimum far from the best fits the corners about as well
 NO_START = 17  # four ridges: the rotation constraints have no real solution along the free direction
 NO_CONVERGED = 18  # four ridges: no starting pose's refinement converged
+# added to a status when the dense refinement's solution (not the corners') failed: SINGULAR or a check
+DENSE_STAGE = 64
 
 # two minima are rivals when the other's cost (chi-square) is this close to the best's and it lies this many
 # standard deviations (Mahalanobis, under the best minimum's covariance) away: the lower cost is a coin toss
@@ -34,8 +36,8 @@ DECODED, OFF_PLANE, INFINITE, ALL_INVALID = 0, 1, 2, 3
 # option vector layout
 O_EPS, O_TRIM, O_MINSEG, O_MINANGLE, O_MAXFACE, O_MAXOFF, O_ROBUST, O_THR, O_FLOOR, O_NOISE, O_SIGFLOOR, \
     O_WEIGHTED, O_REFINE, O_MAXIT, O_MAXREPROJ, O_MARGIN, O_PASSES, O_SPIKE, O_MAXRATIO, O_GAP, O_SEARCH, \
-    O_SEARCHSIG = range(22)
-N_OPTIONS = 22
+    O_SEARCHSIG, O_DENSE, O_DMARGIN, O_DTHR, O_DFLOOR, O_DITER = range(27)
+N_OPTIONS = 27
 
 JIT = dict(cache=True, error_model="numpy", nogil=True)  # numba.njit options of every compiled function
 

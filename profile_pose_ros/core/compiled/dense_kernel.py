@@ -1,7 +1,10 @@
 """The dense refinement compiled (estimation/dense.py says what it fits): point selection, robust cut and
-Gauss-Newton steps in one call, fast enough for the loop beside the other nodes on two cores (written in
-numpy it was not: docs/design_notes.md). Steps are solved through the normal equations (Cholesky):
-no LAPACK in the hot path.
+Gauss-Newton steps in one call. Steps are solved through the normal equations (Cholesky): no LAPACK in the
+hot path.
+
+On a face the predicted depth is linear in the point's x, and so is every column of the Jacobian, so
+J^T J and J^T r follow from five sums per face (count, x, x^2, r, x r) instead of 27 products per point;
+the points themselves are only classified (face, residual) and cut.
 """
 from __future__ import annotations
 
@@ -13,34 +16,92 @@ from .codes import JIT, OK, SINGULAR
 from .estimate_kernel import _cholesky, _cholesky_solve, _matmul3, _so3_exp, _spd_inverse
 from .kernel import kernel
 
-STEP_TOLERANCE = 1e-13  # as dense.refine_dense: stop once no step component exceeds it
+STEP_TOLERANCE = 1e-13  # stop once no step component exceeds it (m, rad): converged to rounding
+# or once a step lowers chi-square by less than this: it moved the pose by under a thousandth of its own
+# standard deviation (Mahalanobis), and Gauss-Newton's next step would be smaller still by its square
+STEP_CHI2 = 1e-10
+
+# columns of the per-face depth model (_face_models)
+A, INV_B, C, ALPHA, TX, TY, TZ = range(7)
 
 
 @kernel(**JIT)
-def _inliers(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor,
-             jac, residual):
-    """Fill the first rows of jac (N, 6) and residual (N) with the usable, inlying points (dense.py's
-    select_points, depth_model and robust cut); returns how many. What depends only on the face and the
-    pose (the normal in F, the depth model's coefficients) is computed once per face, not per point."""
-    n_ridges = ridge_u.shape[0]
-    n_faces = n_ridges + 1
-    # Per face, with the face's normal n and m = R^T n (the normal in F): a = m0, 1 / b = 1 / m2,
-    # c = offset - n . t, m1 / b, then -n / b (the translation columns)
-    coef = np.empty((n_faces, 7))
-    for f in range(n_faces):
+def _face_models(normals, offsets, rot, t, model):
+    """Per face, with its normal n and m = R^T n (the normal in F): a = m0, 1 / b = 1 / m2, c = offset - n . t,
+    alpha = m1 / b and -n / b (the translation columns). A point x of the laser line meets the face at depth
+    (c - x a) / b."""
+    for f in range(normals.shape[0]):
         n0, n1, n2 = normals[f, 0], normals[f, 1], normals[f, 2]
         inv_b = 1.0 / (n0 * rot[0, 2] + n1 * rot[1, 2] + n2 * rot[2, 2])
-        coef[f, 0] = n0 * rot[0, 0] + n1 * rot[1, 0] + n2 * rot[2, 0]
-        coef[f, 1] = inv_b
-        coef[f, 2] = offsets[f] - (n0 * t[0] + n1 * t[1] + n2 * t[2])
-        coef[f, 3] = (n0 * rot[0, 1] + n1 * rot[1, 1] + n2 * rot[2, 1]) * inv_b
-        coef[f, 4] = -n0 * inv_b
-        coef[f, 5] = -n1 * inv_b
-        coef[f, 6] = -n2 * inv_b
+        model[f, A] = n0 * rot[0, 0] + n1 * rot[1, 0] + n2 * rot[2, 0]
+        model[f, INV_B] = inv_b
+        model[f, C] = offsets[f] - (n0 * t[0] + n1 * t[1] + n2 * t[2])
+        model[f, ALPHA] = (n0 * rot[0, 1] + n1 * rot[1, 1] + n2 * rot[2, 1]) * inv_b
+        model[f, TX] = -n0 * inv_b
+        model[f, TY] = -n1 * inv_b
+        model[f, TZ] = -n2 * inv_b
+
+
+@kernel(**JIT)
+def _rank_bin(hist, rank):
+    """The bin holding the rank-th smallest (0-based) of the counted values, and how many lie before it."""
+    below = 0
+    for b in range(hist.shape[0]):
+        if below + hist[b] > rank:
+            return b, below
+        below += hist[b]
+    return hist.shape[0] - 1, below
+
+
+@kernel(**JIT)
+def _median(values, count, hist, pool):
+    """np.median(values[:count]) of non-negative values (count > 0), the same number, by radix selection:
+    the bit patterns of non-negative floats order as the numbers do, so two histograms (the exponent, then
+    the next 11 bits; hist holds 2048 counts) leave a handful of candidates to sort. Quickselect, which
+    np.median uses, mispredicts its branches on fresh data: 4x slower on a profile's residuals. pool is
+    int64 scratch space of count. (A NaN sorts above inf here: an outlier, not a NaN median.)"""
+    bits = values[:count].view(np.int64)
+    lo, hi = (count - 1) // 2, count // 2
+    pool[:count] = bits
+    m, skip = count, 0
+    for shift in (52, 41):
+        hist[:] = 0
+        for j in range(m):
+            hist[(pool[j] >> shift) & 2047] += 1
+        first, below = _rank_bin(hist, lo - skip)
+        last, _ = _rank_bin(hist, hi - skip)
+        if first != last:  # the two middle values straddle two bins: the largest of one, the smallest of the next
+            low, high = 0, 0x7FFFFFFFFFFFFFFF
+            for j in range(m):
+                key = (pool[j] >> shift) & 2047
+                if key == first:
+                    low = max(low, pool[j])
+                elif key == last:
+                    high = min(high, pool[j])
+            pool[0], pool[1] = low, high
+            pair = pool[:2].view(np.float64)
+            return 0.5 * (pair[0] + pair[1])
+        kept = 0
+        for j in range(m):  # branch-free compaction of the bin's members
+            pool[kept] = pool[j]
+            kept += ((pool[j] >> shift) & 2047) == first
+        m, skip = kept, skip + below
+    chosen = np.sort(pool[:m]).view(np.float64)
+    return 0.5 * (chosen[lo - skip] + chosen[hi - skip])
+
+
+@kernel(**JIT)
+def _classify(points, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor, model, face_of, residual,
+              spread, hist, pool):
+    """Each point's face and depth residual, face_of -1 where the point is unusable (off the footprint, within
+    `margin` of a ridge or an edge) or beyond the robust cut (threshold robust standard deviations, at least
+    `floor`); returns how many are kept. spread, hist and pool are scratch space for the median."""
+    n_ridges = ridge_u.shape[0]
     half_w = width / 2
     half_l = length / 2
-    count = 0
+    usable = 0
     for i in range(points.shape[0]):
+        face_of[i] = -1
         x, z = points[i, 0], points[i, 1]
         mx = t[0] + x * rot[0, 0] + z * rot[0, 2]
         my = t[1] + x * rot[1, 0] + z * rot[1, 2]
@@ -48,64 +109,81 @@ def _inliers(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, 
             continue
         face = 0
         clearance = min(abs(mx + half_w), abs(half_w - mx))
-        for k in range(n_ridges):
-            ridge = ridge_q[k] + ridge_u[k] * my
-            if ridge < mx:
-                face += 1
-            clearance = min(clearance, abs(ridge - mx))
+        for k in range(n_ridges):  # branch-free: which side of a ridge a point lies is data, not a pattern
+            beyond = mx - (ridge_q[k] + ridge_u[k] * my)
+            face += int(beyond > 0.0)
+            clearance = min(clearance, abs(beyond))
         if not clearance > margin:
             continue
-        a, inv_b, m1_b = coef[face, 0], coef[face, 1], coef[face, 3]
-        predicted = (coef[face, 2] - x * a) * inv_b  # depth where the ray x meets the face: (c - x a) / b
-        # d a / d delta = -(m x e1) = (0, -m2, m1); d b / d delta = -(m x e3) = (-m1, m0, 0), and
-        # d predicted = (-x d a - predicted d b) / b
-        jac[count, 0] = predicted * m1_b
-        jac[count, 1] = x - predicted * inv_b * a
-        jac[count, 2] = -x * m1_b
-        jac[count, 3] = coef[face, 4]
-        jac[count, 4] = coef[face, 5]
-        jac[count, 5] = coef[face, 6]
-        residual[count] = z - predicted
-        count += 1
-    if count == 0:
+        r = z - (model[face, C] - x * model[face, A]) * model[face, INV_B]
+        face_of[i] = face
+        residual[i] = r
+        spread[usable] = abs(r)
+        usable += 1
+    if usable == 0:
         return 0
-    scale = 1.4826 * np.median(np.abs(residual[:count]))
-    limit = max(threshold * scale, floor)
+    limit = max(threshold * 1.4826 * _median(spread, usable, hist, pool), floor)
     kept = 0
-    for i in range(count):
-        if abs(residual[i]) <= limit:
-            for a in range(6):  # element by element: a row slice per point cost more than the copy
-                jac[kept, a] = jac[i, a]
-            residual[kept] = residual[i]
-            kept += 1
+    for i in range(points.shape[0]):
+        if face_of[i] >= 0:
+            if abs(residual[i]) <= limit:
+                kept += 1
+            else:
+                face_of[i] = -1
     return kept
 
 
 @kernel(**JIT)
-def _normal(jac, residual, count, hessian, gradient):
-    """hessian = J^T J and gradient = J^T r over the first `count` rows. The 27 sums live in locals (in
-    registers): accumulated in the output arrays, each was a chain through memory at every point."""
-    h00 = h01 = h02 = h03 = h04 = h05 = h11 = h12 = h13 = h14 = h15 = 0.0
-    h22 = h23 = h24 = h25 = h33 = h34 = h35 = h44 = h45 = h55 = 0.0
-    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
-    for i in range(count):
-        j0, j1, j2, j3, j4, j5 = jac[i, 0], jac[i, 1], jac[i, 2], jac[i, 3], jac[i, 4], jac[i, 5]
+def _normal_equations(points, face_of, residual, model, sums, hessian, gradient):
+    """hessian = J^T J and gradient = J^T r over the kept points; returns sum r^2. Per face the Jacobian row
+    is B [1, u] with u = x - x0 (x0: the face's first kept point, so the sums do not cancel), hence
+    J^T J = sum over faces of B [[S0, S1], [S1, S2]] B^T and J^T r = B [R0, R1]."""
+    n_faces = model.shape[0]
+    sums[:, :] = 0.0
+    squares = 0.0
+    for i in range(points.shape[0]):
+        f = face_of[i]
+        if f < 0:
+            continue
+        if sums[f, 0] == 0.0:
+            sums[f, 5] = points[i, 0]
+        u = points[i, 0] - sums[f, 5]
         r = residual[i]
-        h00 += j0 * j0; h01 += j0 * j1; h02 += j0 * j2; h03 += j0 * j3; h04 += j0 * j4; h05 += j0 * j5
-        h11 += j1 * j1; h12 += j1 * j2; h13 += j1 * j3; h14 += j1 * j4; h15 += j1 * j5
-        h22 += j2 * j2; h23 += j2 * j3; h24 += j2 * j4; h25 += j2 * j5
-        h33 += j3 * j3; h34 += j3 * j4; h35 += j3 * j5
-        h44 += j4 * j4; h45 += j4 * j5
-        h55 += j5 * j5
-        g0 += j0 * r; g1 += j1 * r; g2 += j2 * r; g3 += j3 * r; g4 += j4 * r; g5 += j5 * r
-    sums = (h00, h01, h02, h03, h04, h05, h11, h12, h13, h14, h15, h22, h23, h24, h25, h33, h34, h35, h44, h45, h55)
-    k = 0
-    for a in range(6):
-        for b in range(a, 6):
-            hessian[a, b] = sums[k]
-            hessian[b, a] = sums[k]
-            k += 1
-    gradient[0], gradient[1], gradient[2], gradient[3], gradient[4], gradient[5] = g0, g1, g2, g3, g4, g5
+        sums[f, 0] += 1.0
+        sums[f, 1] += u
+        sums[f, 2] += u * u
+        sums[f, 3] += r
+        sums[f, 4] += u * r
+        squares += r * r
+    hessian[:, :] = 0.0
+    gradient[:] = 0.0
+    b0, b1 = np.empty(6), np.empty(6)
+    for f in range(n_faces):
+        s0 = sums[f, 0]
+        if s0 == 0.0:
+            continue
+        x0 = sums[f, 5]
+        a, inv_b, alpha = model[f, A], model[f, INV_B], model[f, ALPHA]
+        depth0 = (model[f, C] - x0 * a) * inv_b  # predicted depth at x0; it changes by slope per unit u
+        slope = -a * inv_b
+        beta = a * inv_b
+        # the derivatives of the predicted depth (estimate_kernel's rotation-then-translation order):
+        # d/d delta = (P m1 / b, x - P a / b, -x m1 / b), d/d t = -n / b, each as b0 + b1 u
+        b0[0], b1[0] = alpha * depth0, alpha * slope
+        b0[1], b1[1] = x0 - beta * depth0, 1.0 - beta * slope
+        b0[2], b1[2] = -alpha * x0, -alpha
+        b0[3], b1[3] = model[f, TX], 0.0
+        b0[4], b1[4] = model[f, TY], 0.0
+        b0[5], b1[5] = model[f, TZ], 0.0
+        s1, s2, r0, r1 = sums[f, 1], sums[f, 2], sums[f, 3], sums[f, 4]
+        for k in range(6):
+            gradient[k] += b0[k] * r0 + b1[k] * r1
+            for j in range(k, 6):
+                hessian[k, j] += b0[k] * b0[j] * s0 + (b0[k] * b1[j] + b1[k] * b0[j]) * s1 + b1[k] * b1[j] * s2
+    for k in range(6):
+        for j in range(k):
+            hessian[k, j] = hessian[j, k]
+    return squares
 
 
 @kernel(**JIT)
@@ -122,15 +200,21 @@ def refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot,
         if math.isfinite(points[i, 0]) and math.isfinite(points[i, 1]):
             pts[k, 0], pts[k, 1] = points[i, 0], points[i, 1]
             k += 1
-    jac, residual = np.empty((finite, 6)), np.empty(finite)
+    n_faces = normals.shape[0]
+    face_of, residual, spread = np.empty(finite, np.int64), np.empty(finite), np.empty(finite)
+    hist, pool = np.empty(2048, np.int64), np.empty(finite, np.int64)
+    model, sums = np.empty((n_faces, 7)), np.empty((n_faces, 6))
     hessian, gradient, low, step = np.empty((6, 6)), np.empty(6), np.empty((6, 6)), np.empty(6)
     turn, rotated = np.empty((3, 3)), np.empty((3, 3))
     rot_out[:, :] = rot
     t_out[:] = t
+    converged = False
+    count, squares = 0, 0.0
     for _ in range(iterations):
-        count = _inliers(pts, normals, offsets, ridge_q, ridge_u, width, length, rot_out, t_out, margin, threshold,
-                         floor, jac, residual)
-        _normal(jac, residual, count, hessian, gradient)
+        _face_models(normals, offsets, rot_out, t_out, model)
+        count = _classify(pts, ridge_q, ridge_u, width, length, rot_out, t_out, margin, threshold, floor, model,
+                          face_of, residual, spread, hist, pool)
+        squares = _normal_equations(pts, face_of, residual, model, sums, hessian, gradient)
         if count < 6 or not _cholesky(hessian, low):
             return SINGULAR, count, 0.0
         _cholesky_solve(low, gradient, step)
@@ -139,17 +223,23 @@ def refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot,
         rot_out[:, :] = rotated
         for a in range(3):
             t_out[a] += step[3 + a]
-        largest = 0.0
+        largest, decrease = 0.0, 0.0
         for a in range(6):
             largest = max(largest, abs(step[a]))
-        if largest < STEP_TOLERANCE:
+            decrease += step[a] * gradient[a]  # = step^T (J^T J) step, the chi-square the step removes
+        scale = noise_std * noise_std if noise_std > 0.0 else squares / max(1, count - 6)
+        if largest < STEP_TOLERANCE or decrease < STEP_CHI2 * scale:
+            # the normal equations just formed are those of the final pose, to well within its uncertainty
+            converged = True
             break
-    count = _inliers(pts, normals, offsets, ridge_q, ridge_u, width, length, rot_out, t_out, margin, threshold,
-                     floor, jac, residual)
-    _normal(jac, residual, count, hessian, gradient)
+    if not converged:
+        _face_models(normals, offsets, rot_out, t_out, model)
+        count = _classify(pts, ridge_q, ridge_u, width, length, rot_out, t_out, margin, threshold, floor, model,
+                          face_of, residual, spread, hist, pool)
+        squares = _normal_equations(pts, face_of, residual, model, sums, hessian, gradient)
     sigma = noise_std
     if sigma == 0.0:
-        sigma = math.sqrt(np.sum(residual[:count] ** 2) / max(1, count - 6))
+        sigma = math.sqrt(squares / max(1, count - 6))
     if count < 6 or not _spd_inverse(hessian, cov_out):
         return SINGULAR, count, sigma
     for a in range(6):

@@ -1,8 +1,9 @@
 """The estimator in one compiled call: corners, closed form (a four-ridge gauge's several starting poses,
 each refined, the lowest minimum kept unless a rival fits about as well), refinement, the basin search
 when the pose is poorly determined or its checks refuse it, the checks, and for a poorly determined pose
-its covariance by the unscented transform. A profile costs one dispatch from Python, the poorly
-determined ones too.
+its covariance by the unscented transform; or, with the dense model, the dense refinement from that pose
+and the same checks of its solution. A profile costs one dispatch from Python, the poorly determined ones
+too.
 """
 from __future__ import annotations
 
@@ -11,9 +12,11 @@ import math
 import numpy as np
 
 from ..model.sym3 import largest_eigenvalue
-from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, INCONSISTENT, JIT, NO_CONVERGED, NO_START,
-                    NOT_FINITE, O_MARGIN, O_MAXIT, O_MAXRATIO, O_MAXREPROJ, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED,
-                    OK, OUTSIDE_FOOTPRINT, REPROJECTION)
+from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, DENSE_STAGE, INCONSISTENT, JIT, NO_CONVERGED,
+                    NO_START, NOT_FINITE, O_DENSE, O_DFLOOR, O_DITER, O_DMARGIN, O_DTHR, O_MARGIN, O_MAXIT, O_MAXRATIO,
+                    O_MAXREPROJ, O_NOISE, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT,
+                    REPROJECTION)
+from .dense_kernel import refine_dense
 from .estimate_kernel import (_cholesky, _closed_form, _detect, _quadratic, _refine, _residuals, _spd_inverse,
                               _unstack_residuals)
 from .kernel import kernel
@@ -150,8 +153,31 @@ def _unscented_covariance(q, u, w, corners, rot, t, corner_cov, weighted, max_it
 
 
 @kernel(**JIT)
-def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
-             info):
+def _dense_stage(points, q, u, w, faces, width, length, opt, corners, rot, t, cov, info, res_out):
+    """rot, t, cov replaced by the dense refinement's from (rot, t) if its solution passes the checks the
+    corner solution passed (the corners' residual test aside: the dense pose does not minimise them).
+    Returns (status, reprojection error). faces: Gauge.kernel_faces, writable copies (numba's code for the
+    dense loops was a third slower on the gauge's read-only arrays)."""
+    normals, offsets, ridge_q, ridge_u = faces
+    rot_d, t_d, cov_d = np.empty((3, 3)), np.empty(3), np.empty((6, 6))
+    status, used, sigma = refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t,
+                                       opt[O_NOISE], opt[O_DMARGIN], opt[O_DTHR], opt[O_DFLOOR], int(opt[O_DITER]),
+                                       rot_d, t_d, cov_d)
+    if status != OK:
+        return status, np.nan
+    r = np.empty(2 * corners.shape[0])
+    _residuals(q, u, w, corners, rot_d, t_d, r)
+    status, err = _check(corners, rot_d, t_d, r, 0.0, False, width, length, opt, info, res_out)
+    if status == OK:
+        rot[:, :] = rot_d
+        t[:] = t_d
+        cov[:, :] = cov_d
+    return status, err
+
+
+@kernel(**JIT)
+def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, rot_out, t_out, cov_out,
+             cf_rot, cf_t, cf_res, res_out, info):
     """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,
     position_sigma, search_starts); position_sigma is NaN unless a pose is accepted, search_starts 0 unless
     the basin search ran."""
@@ -245,7 +271,13 @@ def estimate(points, q, u, w, width, length, opt, corners, rot_out, t_out, cov_o
             status, err = _check(corners, rot, t, r, chi2, refined, width, length, opt, info, res_out)
     if status != OK:
         return status, iterations, fit_rms, err, cf_err, np.nan, tried
-    if refined and not _position_sigma(cov[3:, 3:]) <= opt[O_SEARCHSIG]:
+    if opt[O_DENSE] > 0:
+        status, dense_err = _dense_stage(points, q, u, w, (normals, offsets, ridge_q, ridge_u), width, length, opt,
+                                         corners, rot, t, cov, info, res_out)
+        if status != OK:
+            return status + DENSE_STAGE, iterations, fit_rms, err, cf_err, np.nan, tried
+        err = dense_err
+    elif refined and not _position_sigma(cov[3:, 3:]) <= opt[O_SEARCHSIG]:
         _unscented_covariance(q, u, w, corners, rot, t, corner_cov, weighted, max_it, cov)
     rot_out[:, :] = rot
     t_out[:] = t

@@ -9,7 +9,6 @@ every stage: the kernels in compiled/, compiled ahead, JIT-compiled or, for debu
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 
@@ -19,10 +18,9 @@ from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
 from .hidden_face import estimate_past_a_hidden_face
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_ambiguous,
-                     reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected,
-                     ros_covariance)
+                     reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected)
 from .solver import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
-from .stages import detect_corners, detection_reason, refine_dense, refine_pose
+from .stages import detect_corners, detection_reason, refine_pose
 
 REASON_NO_START = "no real starting pose for the 4-ridge gauge"
 
@@ -44,10 +42,7 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
 
 
 def _estimate_every_stage(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
-    estimate = _estimate_in_one_call(points, gauge, options)
-    if estimate.ok and options.refine and options.refine_model == "dense":
-        estimate = _refine_dense(points, gauge, options, estimate)
-    return _checked_precision(estimate, options)
+    return _checked_precision(_estimate_in_one_call(points, gauge, options), options)
 
 
 def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> PoseEstimate:
@@ -62,43 +57,11 @@ def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> Pos
     return estimate
 
 
-def check_solution(gauge: Gauge, solution: PoseSolution, corners: np.ndarray, options: EstimatorOptions) -> str:
-    """Why a solution is no pose ("" if it is one): not finite, corners missing their ridges by more than the
-    bound, or corners mapped off the gauge's footprint (the compiled call's checks, for the dense solution)."""
-    if not (np.all(np.isfinite(solution.rotation)) and np.all(np.isfinite(solution.translation))):
-        return REASON_NOT_FINITE
-    error = solution.reprojection_error
-    if not error <= options.max_reprojection_error:
-        return reason_reprojection(error, gauge, options)
-    mapped = corners[:, :1] * solution.rotation[:, 0] + corners[:, 1:] * solution.rotation[:, 2] + solution.translation
-    half = np.array([gauge.width, gauge.length]) / 2 + options.footprint_margin
-    outside = np.nonzero(np.any(np.abs(mapped[:, :2]) > half, axis=1))[0]
-    if len(outside):
-        i = int(outside[0])
-        return reason_outside(i, mapped[i, 0], mapped[i, 1], gauge)
-    return ""
-
-
-def _refine_dense(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: PoseEstimate
-                  ) -> PoseEstimate:
-    """Replace the corner solution by the dense one (same checks), keeping the corner results alongside."""
-    start = time.perf_counter()
-    try:
-        dense = refine_dense(gauge, points, estimate.R, estimate.t, options.noise_std)
-    except (np.linalg.LinAlgError, ValueError) as exc:
-        return rejected(estimate, f"dense refinement: {exc}")
-    solution = PoseSolution(dense.rotation, dense.translation,
-                            corner_residuals(gauge, estimate.corners, dense.rotation, dense.translation))
-    timings = dict(estimate.timings, dense_refinement=time.perf_counter() - start)
-    reason = check_solution(gauge, solution, estimate.corners, options)
-    if reason:
-        return rejected(estimate, f"dense refinement: {reason}", timings=timings)
-    return replace(estimate, R=dense.rotation, t=dense.translation, reprojection_error=solution.reprojection_error,
-                   covariance=ros_covariance(dense.rotation, dense.covariance_local), timings=timings,
-                   position_sigma=None)
-
-
 def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptions, error: float) -> str:
+    if status >= codes.DENSE_STAGE:
+        if status - codes.DENSE_STAGE == codes.SINGULAR:
+            return "dense refinement: Singular matrix"
+        return f"dense refinement: {_reason(status - codes.DENSE_STAGE, info, gauge, options, error)}"
     n = gauge.n_ridges
     detection = detection_reason(status, info, n, options.corners)
     if detection is not None:
@@ -140,8 +103,8 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     start = time.perf_counter()
     try:
         status, iterations, fit_rms, error, cf_error, sigma, search_starts = kernels().estimate(
-            points, gauge.q, gauge.u, gauge.w, gauge.width, gauge.length, options.kernel_vector, corners, rot, t,
-            cov, cf_rot, cf_t, cf_res, res, info)
+            points, gauge.q, gauge.u, gauge.w, *gauge.kernel_faces, gauge.width, gauge.length, options.kernel_vector,
+            corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
     except np.linalg.LinAlgError as exc:
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
     timings = {"total": time.perf_counter() - start}

@@ -14,6 +14,7 @@ from ..compiled import codes
 from ..model.gauge import Gauge
 from ..model.sym3 import largest_eigenvalue
 from .corners import ROBUST_PASSES, CornerOptions
+from .dense import DenseOptions
 from .solver import PoseSolution
 
 WEIGHTINGS = ("corner_covariance", "uniform")
@@ -77,6 +78,12 @@ class EstimatorOptions:
         v[codes.O_GAP] = np.nan if c.virtual_corner_gap is None else c.virtual_corner_gap
         v[codes.O_SEARCH] = 1.0 if self.basin_search and self.refine else 0.0
         v[codes.O_SEARCHSIG] = self.basin_search_min_sigma
+        dense = DenseOptions()
+        v[codes.O_DENSE] = 1.0 if self.refine and self.refine_model == "dense" else 0.0
+        v[codes.O_DMARGIN] = dense.ridge_margin
+        v[codes.O_DTHR] = dense.outlier_threshold
+        v[codes.O_DFLOOR] = dense.min_outlier_floor
+        v[codes.O_DITER] = dense.iterations
         v.setflags(write=False)
         return v
 

@@ -53,7 +53,8 @@ class Gauge:
     @cached_property
     def kernel_faces(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(normals, offsets, ridge x at y = 0, u) as the compiled dense refinement takes them: contiguous
-        writable copies (its prebuilt signature), made once per gauge, not per profile."""
+        writable copies (its prebuilt signature; and numba's code for its loops is slower on read-only
+        arrays), made once per gauge, not per profile."""
         return tuple(np.array(a, dtype=np.float64) for a in (self.normals, self.offsets, self.q[:, 0], self.u))
 
     # ---------------------------------------------------------------- construction
