@@ -9,6 +9,7 @@ every stage: the kernels in compiled/, compiled ahead, JIT-compiled or, for debu
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 
@@ -36,13 +37,20 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
         options = options.with_changes(**overrides)
     estimate = _estimate_every_stage(points, gauge, options)
     if not estimate.ok and estimate.corners.size == 0 and options.hidden_faces:
-        # corner detection refused it: perhaps a gap hides a whole face
-        return estimate_past_a_hidden_face(points, gauge, options, _estimate_every_stage) or estimate
+        # corner detection refused it: perhaps a gap hides a whole face. The corners then see the gauge
+        # without that face, but the profile's points still lie on the real gauge: the dense refinement fits
+        # them to all its faces (a face the reduced gauge lacks made it cut a third of the points and settle
+        # many standard deviations off whenever the face was in fact narrowly in view)
+        return estimate_past_a_hidden_face(points, gauge, options,
+                                           partial(_estimate_every_stage, surface=gauge)) or estimate
     return estimate
 
 
-def _estimate_every_stage(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
-    return _checked_precision(_estimate_in_one_call(points, gauge, options), options)
+def _estimate_every_stage(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
+                          surface: Gauge | None = None) -> PoseEstimate:
+    """surface: the gauge whose faces the dense refinement fits (gauge itself unless gauge is one without a
+    face)."""
+    return _checked_precision(_estimate_in_one_call(points, gauge, options, surface), options)
 
 
 def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> PoseEstimate:
@@ -89,7 +97,8 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
     return f"internal status {status}"
 
 
-def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
+def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
+                          surface: Gauge | None = None) -> PoseEstimate:
     """The whole estimate in a single compiled call (corners, closed form or four-ridge starts, refinement,
     basin search, checks)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
@@ -103,7 +112,8 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     start = time.perf_counter()
     try:
         status, iterations, fit_rms, error, cf_error, sigma, search_starts = kernels().estimate(
-            points, gauge.q, gauge.u, gauge.w, *gauge.kernel_faces, gauge.width, gauge.length, options.kernel_vector,
+            points, gauge.q, gauge.u, gauge.w, *(surface or gauge).kernel_faces, gauge.width, gauge.length,
+            options.kernel_vector,
             corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
     except np.linalg.LinAlgError as exc:
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
