@@ -93,6 +93,30 @@ def test_an_end_face_out_of_view_is_found_at_its_end(gauge, rng, end):
         assert position < 1e-3 and rotation_error < 5e-3
 
 
+@pytest.mark.parametrize("refine_model", ["corners", "dense"])
+def test_two_faces_beyond_the_view_leave_the_run_of_faces_seen(rng, refine_model):
+    """The designed gauge near the edge of the view: the end face and all but a millimetre of the next are
+    out of it (too few points for a face), so corner detection finds two corners fewer. The faces seen are
+    a run of the gauge's; only the right placement of the run explains the profile."""
+    from profile_pose_ros.resources import config_path
+
+    gauge = Gauge.from_yaml(config_path("gauge_designed_n6.yaml"))
+    n = gauge.n_ridges
+    for trial in range(8):
+        rotation, t = sample_pose(gauge, rng)
+        points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+        corners = true_corners(gauge, rotation, t)[:, 0]
+        right = trial % 2 == 0
+        points = (hidden(points, corners[-2] + 1e-3, np.inf) if right
+                  else hidden(points, -np.inf, corners[1] - 1e-3))
+        assert not estimate_pose(points, gauge, hidden_faces=False).ok
+        estimate = estimate_pose(points, gauge, refine_model=refine_model)
+        assert estimate.ok, estimate.reason
+        assert estimate.faces_in_view == ((0, n - 2) if right else (2, n)) and estimate.hidden_face is None
+        position, rotation_error = pose_error(estimate.R, estimate.t, rotation, t)
+        assert position < 1e-3 and rotation_error < 5e-3
+
+
 def test_a_gap_that_hides_no_face_is_not_explained_by_one(gauge, rng):
     """A profile of another gauge, one face short, with a gap: no hidden face of this gauge explains it."""
     rotation, t = sample_pose(gauge, rng)

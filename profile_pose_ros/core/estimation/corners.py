@@ -67,6 +67,7 @@ class CornerResult:
     lines: list[LineFit] = field(default_factory=list)  # the n+1 face fits
     jacobian: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # d corners / d line params
     fit_rms: float = float("nan")  # m, rms residual of the face fits
+    faces_found: int = 0  # when refused for the number of corners: how many faces were found
 
     def covariance(self, noise_std: float | None = None, floor: float = 1e-7) -> np.ndarray:
         """(2n, 2n) covariance of the stacked corners [x0, z0, x1, z1, ...].

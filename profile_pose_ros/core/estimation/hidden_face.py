@@ -7,9 +7,11 @@ and their fitted lines cross where that line pierces the laser plane, so the gau
 is an extrapolation of the two fits, and its covariance (from the same line-fit Jacobian) says how far.
 
 Which face is hidden follows from where the gap is: the one between the two face fits either side of it.
-With no such gap, an end face may be out of view (a gap over the end of the lit span); both ends are tried
-and only an unambiguous answer is kept. Every answer is checked against the pose it gives: the full gauge at
-that pose must put the hidden face where the profile has no points, or the hypothesis is refused.
+With no such gap, faces may be out of view at the ends (the gauge near the edge of the profiler's field, or
+a gap over the end of the lit span): the faces seen are then a run of the gauge's (Gauge.faces_in_view), every
+placement of the run is tried, and only an unambiguous answer is kept. Every answer is checked against the
+pose it gives: the full gauge at that pose must put what was not seen where the profile has no points, or
+the hypothesis is refused.
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from .stages import detect_corners
 
 # a run between two valid points wider than this many point pitches is a gap, not the profiler's spacing
 GAP_PITCHES = 3.0
+MIN_RIDGES = 4  # the fewest the estimator solves: a gauge seen in part must keep as many
 
 
 def _valid_x(points: np.ndarray) -> np.ndarray:
@@ -49,7 +52,7 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     like one face hidden (not exactly one corner missing): the caller's refusal stands."""
     n = gauge.n_ridges
     x = _valid_x(points)
-    if n < 5 or len(x) < 3:  # the gauge without a face must keep four ridges, the fewest the estimator solves
+    if n < MIN_RIDGES + 1 or len(x) < 3:  # the gauge without a face must keep MIN_RIDGES
         return None
     # a face that showed fewer points than a segment needs would not have been found either
     tolerance = options.corners.min_segment_points * float(np.median(np.diff(x)))
@@ -57,18 +60,24 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
         found = _with_face_hidden_in_gap(points, gauge, options, estimate, before, after, tolerance)
         if found is not None:
             return found
-    # an end face out of view (a gap over the end of the lit span): the lines are faces 1..n or 0..n-1
+    # faces out of view at the ends (the gauge near the edge of the profiler's field, or a gap over the end of
+    # the lit span, which may take the next face's few points with it): the lines seen are a run of the
+    # gauge's faces, one shorter per corner missing
     detection = detect_corners(points, n - 1, options.corners)
+    if not detection.ok and MIN_RIDGES + 1 <= detection.faces_found < n:
+        detection = detect_corners(points, detection.faces_found - 1, options.corners)
     if not detection.ok:
         return None
     seen = (detection.lines[0].x_min, detection.lines[-1].x_max)
-    ends = [_with_end_face_hidden(points, gauge, options, estimate, face, seen, tolerance) for face in (0, n)]
-    accepted = [found for found in ends if found.ok]
+    shown = len(detection.lines) - 1  # faces first..first + shown are in view
+    runs = [_with_faces_out_of_view(points, gauge, options, estimate, first, first + shown, seen, tolerance)
+            for first in range(n - shown + 1)]
+    accepted = [found for found in runs if found.ok]
     if len(accepted) == 1:
         return accepted[0]
-    if len(accepted) == 2:
-        return PoseEstimate(False, f"corner detection: found {n - 1} corners; either end face out of view "
-                                   f"explains the profile (ambiguous)", timings=accepted[0].timings)
+    if len(accepted) > 1:
+        return PoseEstimate(False, f"corner detection: found {shown} corners; {len(accepted)} placements of the "
+                                   f"faces in view explain the profile (ambiguous)", timings=accepted[0].timings)
     return None
 
 
@@ -100,17 +109,22 @@ def _with_face_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: Estimato
     return rejected(found, f"{reason} (with {where})") if reason else replace(found, hidden_face=face)
 
 
-def _with_end_face_hidden(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
-                          face: int, seen: tuple[float, float], tolerance: float) -> PoseEstimate:
-    """The pose with end face `face` out of view: its corner must lie beyond the faces seen (x span `seen`)."""
-    found = estimate(points, gauge.without_face(face), options)
+def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
+                            first: int, last: int, seen: tuple[float, float], tolerance: float) -> PoseEstimate:
+    """The pose with only faces first..last in view: the corners of the faces beyond them must lie beyond the
+    faces seen (x span `seen`)."""
+    found = estimate(points, gauge.faces_in_view(first, last), options)
     if not found.ok:
         return found
-    ridge = true_corners(gauge, found.R, found.t)[0 if face == 0 else -1, 0]
-    if (ridge > seen[0] + tolerance) if face == 0 else (ridge < seen[1] - tolerance):
-        return rejected(found, f"the pose puts end face {face}'s corner at x {ridge * 1e3:.1f} mm, where the "
-                               f"profile has points")
-    return replace(found, hidden_face=face)
+    ridges = true_corners(gauge, found.R, found.t)[:, 0]
+    if first > 0 and ridges[first - 1] > seen[0] + tolerance:
+        return rejected(found, f"the pose puts the corner left of face {first} at x {ridges[first - 1] * 1e3:.1f} "
+                               f"mm, where the profile has points")
+    if last < gauge.n_ridges and ridges[last] < seen[1] - tolerance:
+        return rejected(found, f"the pose puts the corner right of face {last} at x {ridges[last] * 1e3:.1f} mm, "
+                               f"where the profile has points")
+    one_hidden = {(1, gauge.n_ridges): 0, (0, gauge.n_ridges - 1): gauge.n_ridges}.get((first, last))
+    return replace(found, hidden_face=one_hidden, faces_in_view=(first, last))
 
 
 def _outside_footprint(found: PoseEstimate, virtual: int, gauge: Gauge, options: EstimatorOptions) -> str:

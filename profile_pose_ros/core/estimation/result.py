@@ -110,7 +110,8 @@ class PoseEstimate:
     timings: dict = field(default_factory=dict)  # seconds per stage
     search_starts: int = 0  # starting poses tried by the basin search (0: the pose was well determined)
     position_sigma: float | None = None  # position_sigma(covariance[:3, :3]) when the compiled path computed it
-    hidden_face: int | None = None  # the face a gap hid (hidden_face.py); corners then has one row fewer
+    hidden_face: int | None = None  # the face a gap hid, or the one end face out of view (hidden_face.py)
+    faces_in_view: tuple[int, int] | None = None  # first, last: when faces beyond the profile's ends were not seen
 
 
 def rejected(estimate: PoseEstimate, reason: str, **changes) -> PoseEstimate:

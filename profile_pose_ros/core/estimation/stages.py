@@ -43,7 +43,8 @@ def detect_corners(points: np.ndarray, n_corners: int, options: CornerOptions = 
     status, _, fit_rms = kernels().detect(points, n_corners, _corner_kernel_vector(options), corners, jac,
                                           np.empty(2 * (n_corners + 1)), info, lines)
     if status != codes.OK:
-        return CornerResult(False, detection_reason(status, info, n_corners, options))
+        return CornerResult(False, detection_reason(status, info, n_corners, options),
+                            faces_found=int(info[1]) if status == codes.WRONG_CORNER_COUNT else 0)
     fits = [LineFit(int(row[0]), int(row[1]), row[2], row[3], row[4], row[5], int(row[6]), row[7], row[8], row[9])
             for row in lines]
     return CornerResult(True, "", corners, fits, jac, fit_rms)

@@ -146,6 +146,16 @@ class Gauge:
                                 source=self.source)
         return cache[face]
 
+    def faces_in_view(self, first: int, last: int) -> "Gauge":
+        """The gauge as a profile that shows only faces first..last sees it (the others beyond the ends of its
+        view): those faces and the ridges between them. Same frame and footprint."""
+        cache = self.__dict__.setdefault("_faces_in_view", {})
+        if (first, last) not in cache:
+            cache[(first, last)] = Gauge(f"{self.name} faces {first}..{last}", self.width, self.length,
+                                         np.array(self.normals[first:last + 1]),
+                                         np.array(self.offsets[first:last + 1]), self.base_z, source=self.source)
+        return cache[(first, last)]
+
     def ridge_x(self, y: np.ndarray | float) -> np.ndarray:
         """x of every ridge at gauge y; shape (..., n)."""
         y = np.asarray(y, dtype=float)[..., None]
