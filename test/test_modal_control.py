@@ -276,15 +276,56 @@ def test_a_planned_step_told_of_its_lost_increments_settles_as_if_none_were_lost
     assert max(settle[0]) > 0.4, settle  # the losses do hit the steps
 
 
+@pytest.mark.parametrize("approach", [(0.0, 0.3), (0.15, 0.3), (0.5, 0.2)])
 @pytest.mark.parametrize("step, speed", [(1e-3, 0.04), (-2e-3, 0.04), (1e-4, 0.04), (1e-3, np.inf)])
-def test_shaped_increments_add_up_to_the_step_within_the_speed_limit(step: float, speed: float) -> None:
+def test_shaped_increments_add_up_to_the_step_within_the_speed_limit(step: float, speed: float,
+                                                                     approach: tuple[float, float]) -> None:
     impulses = zero_vibration_impulses(10.0, 0.1, derivatives=2)
-    increments = shaped_step_increments(step, impulses, speed, PERIOD)
+    increments = shaped_step_increments(step, impulses, speed, PERIOD, *approach)
     assert increments.sum() == pytest.approx(step, rel=1e-12)
     assert np.all(np.sign(increments[increments != 0]) == np.sign(step))  # never back, never past
     if np.isfinite(speed):
         assert np.abs(increments).max() <= speed * PERIOD * (1 + 1e-9)
-    assert len(increments) * PERIOD <= impulses[-1][0] + max(abs(step) / speed, PERIOD) + PERIOD
+    ramp = (1 - approach[0]) * abs(step) / (speed - 1.875 * approach[0] * abs(step) / approach[1])
+    assert len(increments) * PERIOD <= impulses[-1][0] + max(ramp, approach[1] if approach[0] else 0, PERIOD) + PERIOD
+
+
+IDENTIFIED_AT_STEP_SIZE = dict(frequency_hz=(9.908, 10.03, 9.411, 10.0, 10.0, 10.0),
+                               damping=(0.688, 0.047, 0.592, 0.7, 0.7, 0.7))  # profile_pose identify --size 1.5
+
+
+def open_loop_step(axis: int, size: float, seconds: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    arm = Arm(ArmModel())
+    arm.command = np.eye(6)[axis] * size
+    times, positions = [], []
+    for period in range(int(seconds / PERIOD)):
+        times.append(period * PERIOD)
+        positions.append(arm.position[axis])
+        for _ in range(TICKS):
+            arm.advance(TICK)
+    return np.array(times), np.array(positions)
+
+
+@pytest.mark.parametrize("size", [1e-3, 2e-3])
+def test_a_planned_step_ends_slowly_enough_for_table_ivs_spectrum(size: float) -> None:
+    """Table IV's Mf is the 5-20 Hz content after the step passes 90 %: the shaped ramp's deceleration is
+    there (z 2 mm improved 72 % on the open loop against the paper's 96.4 %), unless the last share of the
+    step comes along a slow approach, when the arm passes 90 % moving slowly. Still settled by 0.3 s."""
+    from profile_pose_ros.tools.experiment import PAPER_IMPROVEMENT, step_metrics as table_iv_metrics
+
+    for axis in (0, 2):
+        open_loop = table_iv_metrics(*open_loop_step(axis, size), size)["Mf_um"]
+        improvement = {}
+        for share in (0.0, 0.15):
+            runs = [table_iv_metrics(*run_loop("modal", axis=axis, target=size, seconds=1.5, seed=seed, model=dict(
+                IDENTIFIED_AT_STEP_SIZE, reference_shaping="zvdd", approach_share=share, approach_s=0.3)), size)
+                for seed in range(3)]
+            improvement[share] = 100 * (1 - np.mean([r["Mf_um"] for r in runs]) / open_loop)
+            if share:
+                assert max(r["settling_time_s"] for r in runs) <= 0.3 and max(r["Mp"] for r in runs) <= 2.0
+        paper = PAPER_IMPROVEMENT["xyz"[axis]][round(size * 1e3)][2]
+        assert improvement[0.15] >= paper + 0.3, (axis, improvement)
+        assert improvement[0.0] < 80.0, (axis, improvement)  # the shaped ramp alone: it ends fast
 
 
 def test_zero_vibration_shapers_leave_no_vibration_at_their_mode() -> None:

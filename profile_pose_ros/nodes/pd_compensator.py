@@ -115,6 +115,12 @@ PARAMETERS = [
           "feedforward, the feedback acting on the difference from the model's motion: ~0.2 s to settle on "
           "sim_cell when every increment arrives in its period (the bridge's answer_wait 0, and a loop_delay "
           "that counts the extra period; docs/robot_side.md).", read_only=True),
+    Param("reference_approach_share", 0.15, "modal, reference_shaping zvdd: this share of a planned step comes "
+          "along a minimum-jerk approach of reference_approach_time started with the shaped ramp, so the arm passes "
+          "90 % of the step slowly (Table IV's post-rise spectrum, Mf); not on an axis planned through ZVDDD. 0: the "
+          "shaped ramp alone.", 0.0, 0.9, read_only=True),
+    Param("reference_approach_time", 0.3, "modal, reference_shaping zvdd: how long the approach of "
+          "reference_approach_share takes (s); the step settles about when it ends.", 0.01, 2.0, read_only=True),
     Param("reference_time_constant", 0.25, "modal, reference_shaping lag: a new reference is approached through "
           "a first-order filter of this time constant (s), starting from where the arm is.", 0.01, 10.0,
           read_only=True),
@@ -162,8 +168,8 @@ def modal_controller_from(values: dict) -> ModalController | None:
     return ModalController(ModalDesign(
         tuple(values["modal_frequency"]), tuple(values["modal_damping"]), tuple(values["modal_effort"]),
         tuple(values["modal_acceleration_psd"]), tuple(values["modal_offset_walk"]), values["control_period"],
-        values["loop_delay"], values["reference_time_constant"], values["reference_shaping"]),
-        speed_limit=values["max_speed"])
+        values["loop_delay"], values["reference_time_constant"], values["reference_shaping"],
+        values["reference_approach_share"], values["reference_approach_time"]), speed_limit=values["max_speed"])
 
 
 def gains_from(values: dict) -> Gains:
