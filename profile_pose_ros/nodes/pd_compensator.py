@@ -234,7 +234,11 @@ class PdCompensatorNode(RefusalCounter, Node):
             pose_sub = self.create_subscription(PoseWithCovarianceStamped, "pose_with_covariance", self._on_pose,
                                                 LOOP_INPUT_QOS, callback_group=ServedDirectly(), raw=True)
             self.direct_input.add(pose_sub, self._on_pose)
-        self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10)
+        # served directly as well: through the executor a new reference waited for its housekeeping pass, up to
+        # 50 ms (four 83.3 Hz periods), and a planned step started that much later
+        reference_sub = self.create_subscription(PoseStamped, "reference_pose", self._on_reference, 10,
+                                                 callback_group=ServedDirectly())
+        self.direct_input.add(reference_sub, self._on_reference)
         if self.modal is not None:  # the PD law has no model of the commands it sent to correct
             if local is not None and local.carries("lost_increment"):  # composed with the bridge: its socket thread
                 local.take(self.resolve_topic_name("lost_increment"), self._on_lost)
