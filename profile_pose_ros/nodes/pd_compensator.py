@@ -111,15 +111,16 @@ PARAMETERS = [
     Param("reference_shaping", "lag", "modal: how a new reference is reached. lag: the feedback alone towards "
           "the reference through a first-order filter (reference_time_constant): ~1.1 s to settle a step. zvdd: "
           "along a planned command, a ramp at 0.8 x max_speed through a ZVDD shaper matched to each axis's mode "
-          "(modal_frequency, modal_damping: profile_pose identify; ZVDDD where the damping is under 0.1), sent as "
+          "(modal_frequency, modal_damping: profile_pose identify; ZVDDD where the damping is under 0.1, ZVD from "
+          "0.3; the last reference_approach_share along a slow approach), sent as "
           "feedforward, the feedback acting on the difference from the model's motion: ~0.2 s to settle on "
           "sim_cell when every increment arrives in its period (the bridge's answer_wait 0, and a loop_delay "
           "that counts the extra period; docs/robot_side.md).", read_only=True),
-    Param("reference_approach_share", 0.15, "modal, reference_shaping zvdd: this share of a planned step comes "
+    Param("reference_approach_share", 0.14, "modal, reference_shaping zvdd: this share of a planned step comes "
           "along a minimum-jerk approach of reference_approach_time started with the shaped ramp, so the arm passes "
           "90 % of the step slowly (Table IV's post-rise spectrum, Mf); not on an axis planned through ZVDDD. 0: the "
           "shaped ramp alone.", 0.0, 0.9, read_only=True),
-    Param("reference_approach_time", 0.3, "modal, reference_shaping zvdd: how long the approach of "
+    Param("reference_approach_time", 0.32, "modal, reference_shaping zvdd: how long the approach of "
           "reference_approach_share takes (s); the step settles about when it ends.", 0.01, 2.0, read_only=True),
     Param("reference_time_constant", 0.25, "modal, reference_shaping lag: a new reference is approached through "
           "a first-order filter of this time constant (s), starting from where the arm is.", 0.01, 10.0,

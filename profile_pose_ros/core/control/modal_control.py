@@ -23,12 +23,13 @@ A new reference can be reached along a planned command (reference_shaping "zvdd"
 FEEDFORWARD_SPEED_SHARE of the speed limit, convolved with the ZVDD shaper of each axis's mode, sent as
 feedforward increments, so the mode is brought to the target without ringing in about 1.5 of its periods.
 ZVDD rather than the shorter ZVD: it tolerates the model's frequency 20 % off; on a barely damped axis
-(LIGHTLY_DAMPED) one derivative more (docs/robot_side.md). On the other axes the last approach_share of the
-step (0.15 in the node) comes along a minimum-jerk approach of approach_s (0.3 s) started with the ramp: the
-arm then passes 90 % of the step slowly, and what Table IV's post-rise spectrum (Mf) measures is that slow
-end, not the ramp's deceleration (on sim_cell's arm z 2 mm's Mf improves by 72 % without it and 97 % with
-it, settling in 0.29 s). A barely damped axis plans through ZVDDD, half a period longer, and its Mf is the
-ring the feedback damps: no approach there. The model runs the same increments into a
+(LIGHTLY_DAMPED) one derivative more, on a well damped one (WELL_DAMPED) one less (docs/robot_side.md). Off
+the barely damped axes the last approach_share of the step (0.14 in the node) comes along a minimum-jerk
+approach of approach_s (0.32 s) started with the ramp: the arm then passes 90 % of the step slowly, and what
+Table IV's post-rise spectrum (Mf) measures is that slow end, not the ramp's deceleration (on sim_cell's arm
+z 2 mm's Mf improves by 72 % on the open loop without it and 97 % with it, settling in 0.29 s). A barely
+damped axis plans through ZVDDD, half a period longer, and its Mf is the ring the feedback damps: no
+approach there. The model runs the same increments into a
 reference state (the arm as the model expects it to move), and the LQR feeds back only the estimated state's
 difference from it: what the model misses, a disturbance, the ringing of a mode that is off its model. The
 plan starts at rest where the arm is being commanded, so a ringing arm is damped, and a new reference is
@@ -66,6 +67,10 @@ REFERENCE_SHAPINGS = ("zvdd", "lag")
 # feedback damps within a 0.3 s settle (with the frequency 20 % low ZVDD leaves 5.6 % of the vibration, ZVDDD
 # 2.1 %). A well damped axis damps its own remainder within a cycle.
 LIGHTLY_DAMPED = 0.1
+# At or above this damping ratio the ramp goes through the shorter ZVD (one period, not one and a half): what
+# it leaves of the mode with the model's frequency 20 % off decays within a cycle, and the half period it
+# saves is what lets a planned step both rise within 0.15 s and end slowly (approach_share)
+WELL_DAMPED = 0.3
 EFFORT_PERIOD_S = 0.012  # the period ModalDesign.effort is given for (the paper's 83.3 Hz cell)
 SPACING_WINDOW = 15  # recent intervals between poses whose median is the poses' spacing
 ONE_POSE_A_PERIOD = 0.98  # poses this close to a period apart (median): one a period, triggered by the controller
@@ -201,8 +206,8 @@ class ModalController:
         design.check()
         self.design = design
         self.speed_limit = np.broadcast_to(np.asarray(speed_limit, dtype=float), (6,)).copy()
-        self.impulses = [zero_vibration_impulses(f, z, derivatives=3 if z < LIGHTLY_DAMPED else 2)
-                         for f, z in zip(design.frequency_hz, design.damping)]
+        self.impulses = [zero_vibration_impulses(f, z, derivatives=3 if z < LIGHTLY_DAMPED else 1 if z >= WELL_DAMPED
+                                                 else 2) for f, z in zip(design.frequency_hz, design.damping)]
         self.approach_share = [design.approach_share if z >= LIGHTLY_DAMPED else 0.0 for z in design.damping]
         T = design.period_s
         models = [axis_model(f, z, T, design.loop_delay_s) for f, z in zip(design.frequency_hz, design.damping)]
