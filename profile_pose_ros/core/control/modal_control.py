@@ -26,10 +26,9 @@ ZVDD rather than the shorter ZVD: it tolerates the model's frequency 20 % off; o
 (LIGHTLY_DAMPED) one derivative more, on a well damped one (WELL_DAMPED) one less (docs/robot_side.md). Off
 the barely damped axes the last approach_share of the step (0.14 in the node) comes along a minimum-jerk
 approach of approach_s (0.32 s) started with the ramp: the arm then passes 90 % of the step slowly, and what
-Table IV's post-rise spectrum (Mf) measures is that slow end, not the ramp's deceleration (on sim_cell's arm
-z 2 mm's Mf improves by 72 % on the open loop without it and 97 % with it, settling in 0.29 s). A barely
-damped axis plans through ZVDDD, half a period longer, and its Mf is the ring the feedback damps: no
-approach there. The model runs the same increments into a
+Table IV's post-rise spectrum (Mf) measures is that slow end, not the ramp's deceleration (docs/robot_side.md
+has the figures). A barely damped axis plans through ZVDDD, half a period longer, and its Mf is the ring the
+feedback damps: no approach there. The model runs the same increments into a
 reference state (the arm as the model expects it to move), and the LQR feeds back only the estimated state's
 difference from it: what the model misses, a disturbance, the ringing of a mode that is off its model. The
 plan starts at rest where the arm is being commanded, so a ringing arm is damped, and a new reference is
