@@ -157,8 +157,8 @@ def build_into(directory: Path) -> None:
     array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
     frozen2, frozen1 = types.Array(f8, 2, "C", readonly=True), types.Array(f8, 1, "C", readonly=True)
     signature = types.Tuple((types.int64, types.int64, f8, f8, f8, f8, types.int64))(
-        array2, frozen2, frozen1, frozen1, array2, array1, array1, array1, f8, f8, frozen1, array2, array2, array1, array2, array2,
-        array1, array2, array2, array1)
+        array2, frozen2, frozen1, frozen1, array2, array1, array1, array1, f8, f8, frozen1, array2, array2, array1,
+        array2, array2, array1, array2, array2, array1)
     compiler = CC(MODULE)
     compiler.output_dir = str(directory)
     compiler.target_cpu = "host"  # built on the machine that runs it

@@ -17,8 +17,8 @@ from .estimate_kernel import _cholesky, _cholesky_solve, _matmul3, _so3_exp, _sp
 from .kernel import kernel
 
 STEP_TOLERANCE = 1e-13  # stop once no step component exceeds it (m, rad): converged to rounding
-# or once a step lowers chi-square by less than this: it moved the pose by under a thousandth of its own
-# standard deviation (Mahalanobis), and Gauss-Newton's next step would be smaller still by its square
+# or once a step lowers chi-square by less than this: it moved the pose by a hundred-thousandth of its own
+# standard deviation (Mahalanobis), and Gauss-Newton's next step would be smaller still
 STEP_CHI2 = 1e-10
 
 # columns of the per-face depth model (_face_models)
@@ -58,7 +58,7 @@ def _median(values, count, hist, pool):
     """np.median(values[:count]) of non-negative values (count > 0), the same number, by radix selection:
     the bit patterns of non-negative floats order as the numbers do, so two histograms (the exponent, then
     the next 11 bits; hist holds 2048 counts) leave a handful of candidates to sort. Quickselect, which
-    np.median uses, mispredicts its branches on fresh data: 4x slower on a profile's residuals. pool is
+    np.median uses, mispredicts its branches on fresh data (docs/estimator.md has the cost). pool is
     int64 scratch space of count. (A NaN sorts above inf here: an outlier, not a NaN median.)"""
     bits = values[:count].view(np.int64)
     lo, hi = (count - 1) // 2, count // 2
@@ -109,10 +109,11 @@ def _classify(points, ridge_q, ridge_u, width, length, rot, t, margin, threshold
             continue
         face = 0
         clearance = min(abs(mx + half_w), abs(half_w - mx))
-        for k in range(n_ridges):  # branch-free: which side of a ridge a point lies is data, not a pattern
-            beyond = mx - (ridge_q[k] + ridge_u[k] * my)
-            face += int(beyond > 0.0)
-            clearance = min(clearance, abs(beyond))
+        for k in range(n_ridges):
+            ridge = ridge_q[k] + ridge_u[k] * my
+            if ridge < mx:
+                face += 1
+            clearance = min(clearance, abs(ridge - mx))
         if not clearance > margin:
             continue
         r = z - (model[face, C] - x * model[face, A]) * model[face, INV_B]

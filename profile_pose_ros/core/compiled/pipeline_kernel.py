@@ -157,7 +157,7 @@ def _dense_stage(points, q, u, w, faces, width, length, opt, corners, rot, t, co
     """rot, t, cov replaced by the dense refinement's from (rot, t) if its solution passes the checks the
     corner solution passed (the corners' residual test aside: the dense pose does not minimise them).
     Returns (status, reprojection error). faces: Gauge.kernel_faces, writable copies (numba's code for the
-    dense loops was a third slower on the gauge's read-only arrays)."""
+    dense loops is slower on the gauge's read-only arrays)."""
     normals, offsets, ridge_q, ridge_u = faces
     rot_d, t_d, cov_d = np.empty((3, 3)), np.empty(3), np.empty((6, 6))
     status, used, sigma = refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t,
@@ -262,8 +262,7 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
     dense = opt[O_DENSE] > 0
     # A corner pose that is poorly determined, or refused: perhaps a neighbouring basin holds the right minimum.
     # Not for a poorly determined one the dense refinement takes over: fitting every point, it finds its basin
-    # from the corner pose as well as from the searched one (robustness study: the same wrong and refused
-    # poses but for 0.3 %, at half the p99)
+    # from the corner pose as well as from the searched one (docs/estimator.md, Unclean profiles)
     if opt[O_SEARCH] > 0 and refined and (status != OK or not dense and not _position_sigma(cov[3:, 3:]) <=
                                           opt[O_SEARCHSIG]):
         best_rot, best_t, best_r, best_cov = np.empty((3, 3)), np.empty(3), np.empty(2 * n), np.empty((6, 6))

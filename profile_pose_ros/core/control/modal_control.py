@@ -93,7 +93,7 @@ class ModalDesign:
     loop_delay_s: float = 0.012 + 0.0106
     reference_time_constant_s: float = 0.25
     reference_shaping: str = "lag"
-    # planned steps on a well damped axis: this share of a step arrives along a minimum-jerk approach of
+    # planned steps on an axis not barely damped: this share of a step arrives along a minimum-jerk approach of
     # approach_s (from the same start), the rest along the shaped ramp (module docstring)
     approach_share: float = 0.0
     approach_s: float = 0.3
@@ -118,6 +118,11 @@ class ModalDesign:
         if self.reference_shaping not in REFERENCE_SHAPINGS:
             raise ValueError(f"modal control: reference_shaping is one of {', '.join(REFERENCE_SHAPINGS)}, "
                              f"not {self.reference_shaping!r}")
+
+
+def shaper_derivatives(damping: float) -> int:
+    """The planned ramp's shaper per the mode's damping: ZVD (1), ZVDD (2) or, barely damped, ZVDDD (3)."""
+    return 3 if damping < LIGHTLY_DAMPED else 1 if damping >= WELL_DAMPED else 2
 
 
 def minimum_jerk(s: np.ndarray) -> np.ndarray:
@@ -205,8 +210,8 @@ class ModalController:
         design.check()
         self.design = design
         self.speed_limit = np.broadcast_to(np.asarray(speed_limit, dtype=float), (6,)).copy()
-        self.impulses = [zero_vibration_impulses(f, z, derivatives=3 if z < LIGHTLY_DAMPED else 1 if z >= WELL_DAMPED
-                                                 else 2) for f, z in zip(design.frequency_hz, design.damping)]
+        self.impulses = [zero_vibration_impulses(f, z, derivatives=shaper_derivatives(z))
+                         for f, z in zip(design.frequency_hz, design.damping)]
         self.approach_share = [design.approach_share if z >= LIGHTLY_DAMPED else 0.0 for z in design.damping]
         T = design.period_s
         models = [axis_model(f, z, T, design.loop_delay_s) for f, z in zip(design.frequency_hz, design.damping)]

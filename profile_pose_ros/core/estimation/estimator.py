@@ -39,8 +39,8 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
     if not estimate.ok and estimate.corners.size == 0 and options.hidden_faces:
         # corner detection refused it: perhaps a gap hides a whole face. The corners then see the gauge
         # without that face, but the profile's points still lie on the real gauge: the dense refinement fits
-        # them to all its faces (a face the reduced gauge lacks made it cut a third of the points and settle
-        # many standard deviations off whenever the face was in fact narrowly in view)
+        # them to all its faces (with the reduced gauge it cut the points of a face narrowly in view after all
+        # and settled far off: docs/estimator.md)
         return estimate_past_a_hidden_face(points, gauge, options,
                                            partial(_estimate_every_stage, surface=gauge)) or estimate
     return estimate
