@@ -188,6 +188,23 @@ def _normal_equations(points, face_of, residual, model, sums, hessian, gradient)
 
 
 @kernel(**JIT)
+def _linearise(pts, normals, offsets, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor, model, face_of,
+               residual, spread, hist, pool, sums, hessian, gradient):
+    """One pass over the points at (rot, t): faces, residuals, the robust cut and the normal equations.
+    Returns (points kept, the sum of their squared residuals); the rest are scratch and outputs."""
+    _face_models(normals, offsets, rot, t, model)
+    count = _classify(pts, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor, model, face_of, residual,
+                      spread, hist, pool)
+    return count, _normal_equations(pts, face_of, residual, model, sums, hessian, gradient)
+
+
+@kernel(**JIT)
+def _noise_variance(noise_std, squares, count):
+    """The depth noise's variance: the configured one, or (noise_std 0) the kept residuals'."""
+    return noise_std * noise_std if noise_std > 0.0 else squares / max(1, count - 6)
+
+
+@kernel(**JIT)
 def refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot, t, noise_std, margin, threshold,
                  floor, iterations, rot_out, t_out, cov_out):
     """dense.refine_dense: returns (status, points used, sigma); rot_out, t_out, cov_out (over [delta_F, t])."""
@@ -212,10 +229,9 @@ def refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot,
     converged = False
     count, squares = 0, 0.0
     for _ in range(iterations):
-        _face_models(normals, offsets, rot_out, t_out, model)
-        count = _classify(pts, ridge_q, ridge_u, width, length, rot_out, t_out, margin, threshold, floor, model,
-                          face_of, residual, spread, hist, pool)
-        squares = _normal_equations(pts, face_of, residual, model, sums, hessian, gradient)
+        count, squares = _linearise(pts, normals, offsets, ridge_q, ridge_u, width, length, rot_out, t_out, margin,
+                                    threshold, floor, model, face_of, residual, spread, hist, pool, sums, hessian,
+                                    gradient)
         if count < 6 or not _cholesky(hessian, low):
             return SINGULAR, count, 0.0
         _cholesky_solve(low, gradient, step)
@@ -228,22 +244,19 @@ def refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot,
         for a in range(6):
             largest = max(largest, abs(step[a]))
             decrease += step[a] * gradient[a]  # = step^T (J^T J) step, the chi-square the step removes
-        scale = noise_std * noise_std if noise_std > 0.0 else squares / max(1, count - 6)
-        if largest < STEP_TOLERANCE or decrease < STEP_CHI2 * scale:
+        if largest < STEP_TOLERANCE or decrease < STEP_CHI2 * _noise_variance(noise_std, squares, count):
             # the normal equations just formed are those of the final pose, to well within its uncertainty
             converged = True
             break
     if not converged:
-        _face_models(normals, offsets, rot_out, t_out, model)
-        count = _classify(pts, ridge_q, ridge_u, width, length, rot_out, t_out, margin, threshold, floor, model,
-                          face_of, residual, spread, hist, pool)
-        squares = _normal_equations(pts, face_of, residual, model, sums, hessian, gradient)
-    sigma = noise_std
-    if sigma == 0.0:
-        sigma = math.sqrt(squares / max(1, count - 6))
+        count, squares = _linearise(pts, normals, offsets, ridge_q, ridge_u, width, length, rot_out, t_out, margin,
+                                    threshold, floor, model, face_of, residual, spread, hist, pool, sums, hessian,
+                                    gradient)
+    variance = _noise_variance(noise_std, squares, count)
+    sigma = math.sqrt(variance)
     if count < 6 or not _spd_inverse(hessian, cov_out):
         return SINGULAR, count, sigma
     for a in range(6):
         for b in range(6):
-            cov_out[a, b] *= sigma * sigma
+            cov_out[a, b] *= variance
     return OK, count, sigma

@@ -138,15 +138,13 @@ def shaped_step_increments(step: float, impulses, speed: float, period_s: float,
     straight lines. The move: (1 - approach_share) of the step along a ramp, at least one period long, and
     the rest along a minimum-jerk approach of approach_s from the same start. Its speed never exceeds
     `speed` (the ramp leaves the approach its peak speed; the gains are positive and sum to 1)."""
-    approach = abs(step) * approach_share if approach_s > 0 else 0.0
-    approach_peak = 1.875 * approach / approach_s if approach else 0.0  # minimum jerk's peak speed
-    ramp_speed = speed - approach_peak
-    duration = max((abs(step) - approach) / ramp_speed if ramp_speed > 0 else np.inf, period_s)
-    if not np.isfinite(duration):
+    share = approach_share if approach_s > 0 else 0.0
+    ramp_speed = speed - (1.875 * share * abs(step) / approach_s if share else 0.0)  # minimum jerk's peak speed
+    if share and ramp_speed <= 0:
         raise ValueError("modal control: the approach alone exceeds the planned speed")
-    end = max(delay for delay, _ in impulses) + max(duration, approach_s if approach else 0.0)
+    duration = max((1.0 - share) * abs(step) / ramp_speed if ramp_speed > 0 else 0.0, period_s)
+    end = max(delay for delay, _ in impulses) + max(duration, approach_s if share else 0.0)
     t = np.arange(1, int(np.ceil(end / period_s - 1e-9)) + 1) * period_s
-    share = approach / abs(step) if step else 0.0
     command = step * sum(gain * ((1.0 - share) * np.clip((t - delay) / duration, 0.0, 1.0)
                                  + (share * minimum_jerk((t - delay) / approach_s) if share else 0.0))
                          for delay, gain in impulses)

@@ -113,8 +113,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     try:
         status, iterations, fit_rms, error, cf_error, sigma, search_starts = kernels().estimate(
             points, gauge.q, gauge.u, gauge.w, *(surface or gauge).kernel_faces, gauge.width, gauge.length,
-            options.kernel_vector,
-            corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
+            options.kernel_vector, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
     except np.linalg.LinAlgError as exc:
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
     timings = {"total": time.perf_counter() - start}

@@ -138,23 +138,21 @@ class Gauge:
     def without_face(self, face: int) -> "Gauge":
         """The gauge as a profile that misses `face` sees it: its neighbours meet at a virtual ridge, where
         their planes cross. Same frame and footprint, so a pose of this gauge is a pose of the real one."""
-        cache = self.__dict__.setdefault("_without_face", {})
-        if face not in cache:
-            keep = np.arange(len(self.normals)) != face
-            cache[face] = Gauge(f"{self.name} without face {face}", self.width, self.length,
-                                np.array(self.normals[keep]), np.array(self.offsets[keep]), self.base_z,
-                                source=self.source)
-        return cache[face]
+        return self._with_faces(f"without face {face}", np.arange(len(self.normals)) != face)
 
     def faces_in_view(self, first: int, last: int) -> "Gauge":
         """The gauge as a profile that shows only faces first..last sees it (the others beyond the ends of its
         view): those faces and the ridges between them. Same frame and footprint."""
-        cache = self.__dict__.setdefault("_faces_in_view", {})
-        if (first, last) not in cache:
-            cache[(first, last)] = Gauge(f"{self.name} faces {first}..{last}", self.width, self.length,
-                                         np.array(self.normals[first:last + 1]),
-                                         np.array(self.offsets[first:last + 1]), self.base_z, source=self.source)
-        return cache[(first, last)]
+        return self._with_faces(f"faces {first}..{last}", slice(first, last + 1))
+
+    def _with_faces(self, label: str, keep) -> "Gauge":
+        """The gauge of the faces `keep` selects, made once per gauge and label (a profile's hypotheses ask for
+        the same ones again and again)."""
+        cache = self.__dict__.setdefault("_with_faces_cache", {})
+        if label not in cache:
+            cache[label] = Gauge(f"{self.name} {label}", self.width, self.length, np.array(self.normals[keep]),
+                                 np.array(self.offsets[keep]), self.base_z, source=self.source)
+        return cache[label]
 
     def ridge_x(self, y: np.ndarray | float) -> np.ndarray:
         """x of every ridge at gauge y; shape (..., n)."""
