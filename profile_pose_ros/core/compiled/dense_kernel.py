@@ -252,11 +252,10 @@ def refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot,
         count, squares = _linearise(pts, normals, offsets, ridge_q, ridge_u, width, length, rot_out, t_out, margin,
                                     threshold, floor, model, face_of, residual, spread, hist, pool, sums, hessian,
                                     gradient)
-    variance = _noise_variance(noise_std, squares, count)
-    sigma = math.sqrt(variance)
+    sigma = noise_std if noise_std > 0.0 else math.sqrt(_noise_variance(noise_std, squares, count))
     if count < 6 or not _spd_inverse(hessian, cov_out):
         return SINGULAR, count, sigma
     for a in range(6):
         for b in range(6):
-            cov_out[a, b] *= variance
+            cov_out[a, b] *= sigma * sigma
     return OK, count, sigma
