@@ -128,6 +128,31 @@ def test_the_monitor_stops_what_a_bug_lets_through_and_disarms(cell) -> None:
         client.stop()
 
 
+class SlowStop(MotoPlusClient):
+    """A planted delay: STOP leaves 0.2 s after it was asked for (a thread switch at the wrong moment, on a
+    loaded machine), long enough for the socket thread to notice the disarmed state several times over."""
+
+    def _send(self, body):
+        if isinstance(body, mp.Stop):
+            threading.Event().wait(0.2)
+        return super()._send(body)
+
+
+@pytest.mark.parametrize("ending", ["stop", "disarm"])
+def test_stop_reaches_the_controller_however_late_it_leaves(cell, ending) -> None:
+    """The socket thread must not close the connection between the state change and STOP: the STOP would
+    find no socket and the controller, its STATEs unread, a reset ('a receive failed')."""
+    client = cell.client(lambda now: (np.zeros(6), now), SlowStop)
+    client.arm()
+    try:
+        assert wait_for(lambda: client.state == ARMED and len(cell.applied) > 5)
+        client.stop() if ending == "stop" else client.disarm("test")
+        assert wait_for(lambda: cell.controller.session is None)
+        assert cell.controller.session_end == "STOP"
+    finally:
+        client.stop()
+
+
 def test_the_monitor_refuses_a_stale_correction_the_client_passed_on(cell) -> None:
     client = cell.client(lambda now: (np.array([1e-4, 0, 0, 0, 0, 0]), now - 0.2))  # a bug: no age check
     client.arm()

@@ -97,7 +97,8 @@ class MotoPlusClient:
         self._seq = 0
         self._peer_seq = 0
         self._sock: socket.socket | None = None
-        self._send_lock = threading.Lock()
+        self._send_lock = threading.RLock()  # re-entered by _send_stop, which sends while holding it
+        self._stop_sent = False  # on this connection: its close drains (see _close)
         self._arm_requested = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="motoplus-client", daemon=True)
@@ -121,8 +122,7 @@ class MotoPlusClient:
         the socket thread reads the controller's closing the session as the end it asked for, not a loss."""
         self._arm_requested.clear()
         if self.state in (ARMED, ARMING):
-            self.state = CONNECTED
-            self._send(mp.Stop())
+            self._send_stop()
         self.log(f"disarmed: {reason}")
 
     def stop(self) -> None:
@@ -131,9 +131,7 @@ class MotoPlusClient:
         Closing with its STATEs unread would make the kernel send a reset, and a controller that had not
         yet read STOP would lose it to the reset and see a dropped connection instead of the end asked for."""
         self._arm_requested.clear()
-        if self.state in (ARMED, ARMING):
-            self.state = CONNECTED  # before STOP leaves: the close that follows is the end asked for
-        self._send(mp.Stop())
+        self._send_stop()
         self._finish_sending()
         self._stop.set()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
@@ -167,7 +165,7 @@ class MotoPlusClient:
                 self.monitor.fault()
                 self.counters.faults += 1
                 self.log(f"session lost ({self.last_error}); disarmed until ~/start")
-            self._close(drain_s=STOP_DRAIN_S if self._stop.is_set() else 0.0)
+            self._close()
             self.state = DISCONNECTED if self._arm_requested.is_set() else DISARMED
             if self._stop.is_set():
                 return
@@ -304,6 +302,16 @@ class MotoPlusClient:
                 self.last_error = f"send: {exc}"
                 return False
 
+    def _send_stop(self) -> None:
+        """STOP, with the state changed under the send lock: the socket thread leaves a disarmed session
+        (state CONNECTED) and closes the socket, and had it seen the state before STOP left, it would have
+        closed first. STOP was then lost and the controller, with STATEs unread at the close, got a reset
+        instead (seen once in a full CI run: 'the bridge disconnected (a receive failed)')."""
+        with self._send_lock:
+            if self.state in (ARMED, ARMING):
+                self.state = CONNECTED  # before STOP leaves: the close that follows is the end asked for
+            self._stop_sent = self._send(mp.Stop()) or self._stop_sent
+
     def _finish_sending(self) -> None:
         """Our FIN after everything sent so far (the controller reads STOP, then the end of the stream)."""
         with self._send_lock:
@@ -313,11 +321,12 @@ class MotoPlusClient:
                 except OSError:
                     pass
 
-    def _close(self, drain_s: float = 0.0) -> None:
-        """Close the socket; drain_s > 0: first read (and drop) what the controller still sends, until it
-        closes its side or drain_s passes, so the close is a FIN and not a reset."""
+    def _close(self) -> None:
+        """Close the socket. After our STOP, first read (and drop) what the controller still sends, until
+        it closes its side or STOP_DRAIN_S passes, so the close is a FIN and not a reset."""
         with self._send_lock:
             sock, self._sock = self._sock, None
+            drain_s, self._stop_sent = (STOP_DRAIN_S if self._stop_sent else 0.0), False
         if sock is None:
             return
         try:
