@@ -388,8 +388,30 @@ class Experiment:
             during = (t >= start) & (t < start + RECORD_S)
             covariances = np.array(self.position_covariances[:len(series)])[during] if name == "estimate" else None
             y = along(p[during] - p[before].mean(axis=0), axis, covariances)
-            out[name] = {"t": (t[during] - start).tolist(), "y": y.tolist(), **step_metrics(t[during] - start, y, size)}
+            t = t[during] - start
+            extra = {}
+            if name == "estimate" and np.median(np.diff(t)) < 0.75 * self.period:
+                # a profiler faster than the controller: the estimate at the loop's rate, as the loop fuses it
+                extra = {"Mp_per_pose": step_metrics(t, y, size)["Mp"]}
+                t, y = per_period(t, y, variance_along(covariances, axis), self.period)
+            out[name] = {"t": t.tolist(), "y": y.tolist(), **step_metrics(t, y, size), **extra}
         return out
+
+
+def variance_along(covariances: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Each pose's variance along the unit `axis` (n,), from its position covariance (n, 3, 3)."""
+    return np.einsum("i,nij,j->n", axis, covariances, axis)
+
+
+def per_period(t: np.ndarray, y: np.ndarray, variance: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray]:
+    """The poses of each control period (from t = 0) as one: their inverse-variance mean, at their weighted
+    mean time (unbiased on a straight stretch of the motion). What the compensator does with a faster
+    profiler's poses (core/control/period_fusion.py); measured per pose, the largest of a fast profiler's
+    many samples at the target is the estimate's noise, not the arm's overshoot."""
+    weights = 1.0 / variance if np.all(np.isfinite(variance) & (variance > 0)) else np.ones_like(y)
+    _, index = np.unique(np.floor(t / period).astype(int), return_inverse=True)
+    total = np.bincount(index, weights)
+    return np.bincount(index, weights * t) / total, np.bincount(index, weights * y) / total
 
 
 def along(displacements: np.ndarray, axis: np.ndarray, covariances: np.ndarray | None = None) -> np.ndarray:
