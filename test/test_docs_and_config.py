@@ -74,3 +74,19 @@ def test_the_simulated_cells_loop_timing_and_clamps_are_the_experiments() -> Non
     speed = defaults(SIM)["controller_max_speed"]
     assert sim["controller_max_step"] == pytest.approx(period_steps(speed, period).tolist())
     assert set(defaults(BRIDGE)) >= set(bridge)
+
+
+def test_the_fast_steps_layer_sets_only_declared_parameters_within_range():
+    """config/fast_steps.yaml is layered over cell.yaml with --params-file: a misspelt key there would be
+    ignored by the node, and the cell would run the slow law without a word."""
+    modules = {m.NODE_NAME: m for m in node_modules()}
+    document = yaml.safe_load((ROOT / "config" / "fast_steps.yaml").read_text())
+    assert {"pd_compensator", "motoplus_bridge"} <= set(document)
+    for node, block in document.items():
+        declared = {p.name: p for p in modules[node].PARAMETERS}
+        for key, value in block["ros__parameters"].items():
+            assert key in declared, (node, key)
+            p = declared[key]
+            assert type(value) is type(p.default), (node, key)
+            if p.low is not None:
+                assert p.low <= value <= p.high, (node, key)

@@ -679,8 +679,9 @@ def main(argv=None) -> int:
     parser.add_argument("--kd", type=float, nargs=6, help="pd_compensator kd")
     parser.add_argument("--psd", type=float, nargs=6, help="pd_compensator acceleration_psd (Kalman process noise)")
     add_control_law_option(parser, ": modal damps the arm's mode, pd only keeps its own commands away from it")
-    parser.add_argument("--compensator-params", type=Path, help="a parameter file for pd_compensator, e.g. the "
-                        "modal model profile_pose identify wrote")
+    parser.add_argument("--compensator-params", type=Path, nargs="+", default=[], help="parameter files for "
+                        "pd_compensator, applied in order over the options above (as --params-file layers them), "
+                        "e.g. config/fast_steps.yaml and then the modal model profile_pose identify wrote")
     parser.add_argument("--modal-frequency-scale", type=float, default=1.0, help="run the modal law with its "
                         "model's frequencies times this (0.8, 1.2: a model 20 %% off, on purpose)")
     parser.add_argument("--answer-wait", type=float, help="motoplus_bridge's answer_wait (periods)")
@@ -710,8 +711,8 @@ def main(argv=None) -> int:
     compensator = {k: list(v) for k, v in (("kp", args.kp), ("kd", args.kd), ("acceleration_psd", args.psd)) if v}
     compensator["control_law"] = args.control_law
     compensator["period_clock"] = args.period_clock
-    if args.compensator_params:
-        compensator.update(yaml.safe_load(args.compensator_params.read_text())["pd_compensator"]["ros__parameters"])
+    for params_file in args.compensator_params:
+        compensator.update(yaml.safe_load(params_file.read_text()).get("pd_compensator", {}).get("ros__parameters", {}))
     if args.reference_shaping:
         compensator["reference_shaping"] = args.reference_shaping
     if args.modal_frequency_scale != 1.0:
