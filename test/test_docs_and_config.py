@@ -12,17 +12,23 @@ def test_parameter_reference_is_generated_from_descriptors():
         "regenerate: python -m profile_pose_ros.tools.param_docs > docs/parameters.md")
 
 
+def assert_declared_and_in_range(module, values: dict) -> None:
+    """Each value names a parameter the node declares, of its type, within its range."""
+    declared = {p.name: p for p in module.PARAMETERS}
+    for key, value in values.items():
+        assert key in declared, (module.NODE_NAME, key)
+        p = declared[key]
+        assert type(value) is type(p.default) or (isinstance(p.default, list) and isinstance(value, list)), key
+        if p.low is not None:
+            assert p.low <= value <= p.high, (module.NODE_NAME, key)
+
+
 @pytest.mark.parametrize("module", node_modules(), ids=lambda m: m.NODE_NAME)
 def test_params_file_names_exactly_the_declared_parameters_within_range(module):
     document = yaml.safe_load((ROOT / "config" / f"{module.NODE_NAME}.yaml").read_text())
     values = document[module.NODE_NAME]["ros__parameters"]
-    declared = {p.name: p for p in module.PARAMETERS}
-    assert set(values) == set(declared)
-    for name, value in values.items():
-        p = declared[name]
-        assert type(value) is type(p.default), name
-        if p.low is not None:
-            assert p.low <= value <= p.high, name
+    assert set(values) == {p.name for p in module.PARAMETERS}
+    assert_declared_and_in_range(module, values)
 
 
 def test_pose_estimator_params_file_is_a_valid_combination():
@@ -44,13 +50,8 @@ def test_cell_parameter_files_are_generated_and_every_block_is_valid(name):
     assert {"profiler_driver", "pose_estimator", "pd_compensator", "motoplus_bridge"} <= set(blocks)
     assert ("sim_cell" in blocks) == (name == "cell.yaml")
     for node, values in blocks.items():
-        declared = {p.name: p for p in modules[node].PARAMETERS}
-        assert set(values) == set(declared) - set(config_files.FRAMES), node
-        for key, value in values.items():
-            p = declared[key]
-            assert type(value) is type(p.default) or (isinstance(p.default, list) and isinstance(value, list)), key
-            if p.low is not None:
-                assert p.low <= value <= p.high, (node, key)
+        assert set(values) == {p.name for p in modules[node].PARAMETERS} - set(config_files.FRAMES), node
+        assert_declared_and_in_range(modules[node], values)
     pose_estimator.options_from({**blocks["pose_estimator"], **document["/**"]["ros__parameters"]})
 
 
@@ -83,10 +84,4 @@ def test_the_fast_steps_layer_sets_only_declared_parameters_within_range():
     document = yaml.safe_load((ROOT / "config" / "fast_steps.yaml").read_text())
     assert {"pd_compensator", "motoplus_bridge"} <= set(document)
     for node, block in document.items():
-        declared = {p.name: p for p in modules[node].PARAMETERS}
-        for key, value in block["ros__parameters"].items():
-            assert key in declared, (node, key)
-            p = declared[key]
-            assert type(value) is type(p.default), (node, key)
-            if p.low is not None:
-                assert p.low <= value <= p.high, (node, key)
+        assert_declared_and_in_range(modules[node], block["ros__parameters"])

@@ -305,8 +305,8 @@ class MotoPlusClient:
     def _send_stop(self) -> None:
         """STOP, with the state changed under the send lock: the socket thread leaves a disarmed session
         (state CONNECTED) and closes the socket, and had it seen the state before STOP left, it would have
-        closed first. STOP was then lost and the controller, with STATEs unread at the close, got a reset
-        instead (seen once in a full CI run: 'the bridge disconnected (a receive failed)')."""
+        closed first: STOP would find no socket, and the controller, its STATEs unread at the close, a reset
+        instead of the end asked for."""
         with self._send_lock:
             if self.state in (ARMED, ARMING):
                 self.state = CONNECTED  # before STOP leaves: the close that follows is the end asked for
