@@ -32,7 +32,7 @@ MIN_RIDGES = 4  # the fewest the estimator solves: a gauge seen in part must kee
 
 
 def _valid_x(points: np.ndarray) -> np.ndarray:
-    # column by column: a third of the time of isfinite(points).all(axis=1) on a profile's (N, 2) array
+    # column by column: isfinite(points).all(axis=1) reduces along the short axis, several times slower
     return points[np.isfinite(points[:, 0]) & np.isfinite(points[:, 1]), 0]
 
 
