@@ -50,7 +50,7 @@ REACHED = 0.95  # a step counts as reached when the record's last 0.2 s average 
 END_S = 0.2
 MAX_HOLE_S = 0.05  # a longer gap between a record's samples can hide a peak of the 10 Hz ring (half a cycle)
 # A step's command acknowledged later than this leaves its start that uncertain: the whole baseline window.
-# The program's step is a parameter service call, 20-24 ms on this VM; the reference is a publish, ~1 ms.
+# The program's step is a parameter service call (tens of ms), the reference a publish: both well within it.
 MAX_COMMAND_S = 0.2
 STEP_ATTEMPTS = 3  # a step whose record a stalled stream spoiled is done again, up to this many times in all
 STARVED_SHARE = 0.1  # answers sent as zero beyond this share of all: the loop was short of CPU, say so
@@ -91,10 +91,9 @@ def step_metrics(t: np.ndarray, y: np.ndarray, size: float) -> dict:
 
 
 def time_at_90_percent(t: np.ndarray, y: np.ndarray, size: float) -> float:
-    """When the response crosses 90 % of the step, interpolated between the two samples around it. The
-    first sample above it (the rule until 2026-12-02) falls up to a period later depending on where the
-    samples happen to sit: a 12 ms sample in an open-loop rise of ~30 ms moved Mf's window across the first
-    overshoot, and the same response read 9-18 um (z, 2 mm) with the sampling phase alone."""
+    """When the response crosses 90 % of the step, interpolated between the two samples around it. The first
+    sample above it falls up to a period later depending on where the samples happen to sit, and in an
+    open-loop rise of a few periods that moves Mf's window across the first overshoot (docs/robot_side.md, Mf)."""
     risen = np.nonzero(y >= 0.9 * size)[0]
     if not len(risen):
         return float(t[0])
