@@ -79,3 +79,26 @@ def test_the_radix_median_is_numpys_median():
         buffer = np.concatenate([values, rng.random(5)])  # only the first n count
         assert _median(buffer, n, hist, pool) == np.median(values)
     assert _median(np.array([1.0, 2.0]), 2, hist, pool) == 1.5  # the two middle values in adjacent binades
+
+
+def test_auto_is_the_corner_pose_where_the_corners_determine_it_and_the_dense_one_where_they_do_not():
+    """refine_model auto: a corner pose with its position std under dense_above_sigma is published as the corner
+    model's, to the bit (its speed); over it, as the dense model's (its robustness: docs/estimator.md)."""
+    from profile_pose_ros.core.design.gauge_design import random_gauge
+
+    rng = np.random.default_rng(7)
+    gauge = random_gauge(5, rng)  # views of it range from well to poorly determined by their corners
+    kept = {False: 0, True: 0}
+    for _ in range(30):
+        rotation, t = sample_pose(gauge, rng)
+        points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+        corners = estimate_pose(points, gauge, max_position_sigma=np.inf)
+        assert corners.ok, corners.reason
+        poorly = corners.position_sigma > 2e-4
+        expected = estimate_pose(points, gauge, refine_model="dense", max_position_sigma=np.inf) if poorly else corners
+        auto = estimate_pose(points, gauge, refine_model="auto", dense_above_sigma=2e-4, max_position_sigma=np.inf)
+        assert auto.ok
+        np.testing.assert_array_equal(auto.t, expected.t)
+        np.testing.assert_array_equal(auto.covariance, expected.covariance)
+        kept[poorly] += 1
+    assert min(kept.values()) >= 5  # both kinds of view were tried

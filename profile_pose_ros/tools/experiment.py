@@ -24,6 +24,7 @@ from ..nodes.pd_compensator import PARAMETERS as COMPENSATOR_PARAMETERS
 from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
 from ..nodes.sim_cell import PARAMETERS as SIM_PARAMETERS
 from ..bags import bag_info
+from ..core.estimation.result import REFINE_MODELS
 from ..core.model.transform import Transform
 from .config_files import add_control_law_option
 from .calibration_study import calibrated, hidden_placement
@@ -687,7 +688,7 @@ def main(argv=None) -> int:
     parser.add_argument("--reference-shaping", choices=["zvdd", "lag"], help="pd_compensator's reference_shaping "
                         "(modal law)")
     parser.add_argument("--modes", nargs="+", default=["open", "closed"], choices=["open", "closed"])
-    parser.add_argument("--refine-model", default="dense", choices=["corners", "dense"],
+    parser.add_argument("--refine-model", default="dense", choices=REFINE_MODELS,
                         help="pose_estimator's refinement: dense fits every point (~1.6x less noise along the "
                              "gauge's weak y axis, ~0.3-0.5 ms per profile)")
     parser.add_argument("--gauge", default="", help="gauge YAML of the cell (default: config/gauge_paper_n5.yaml; "

@@ -26,6 +26,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..core.estimation.result import REFINE_MODELS
 from ..nodes.messages import stamp_ns, twist_vector
 from ..nodes.motoplus_bridge import PARAMETERS as BRIDGE_PARAMETERS
 from ..nodes.parameters import defaults
@@ -464,7 +465,7 @@ def print_table(results: list[dict], period_ms: float) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rate", type=float, default=83.333, help="control rate: 83.333 (12 ms) or 250 (4 ms)")
-    parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
+    parser.add_argument("--refine-model", default="corners", choices=REFINE_MODELS)
     parser.add_argument("--only", nargs="+", help="only the faults whose names contain one of these words")
     add_control_law_option(parser)
     parser.add_argument("--out", default="runs")

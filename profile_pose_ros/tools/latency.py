@@ -21,6 +21,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..core.estimation.result import REFINE_MODELS
 from ..core.timing.latency_window import pooled
 from .config_files import CELL_CONTROL_LAW, add_control_law_option
 from .experiment import Experiment, add_layout_options, control_hz, layout_from
@@ -158,7 +159,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rates", type=float, nargs="+", default=[83.333, 1000.0], help="profile rates (Hz)")
     parser.add_argument("--seconds", type=float, default=20.0, help="measured time per rate")
-    parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
+    parser.add_argument("--refine-model", default="corners", choices=REFINE_MODELS)
     parser.add_argument("--noise", type=float, default=5e-6)
     parser.add_argument("--observer", default="nodes", choices=["nodes", "dds"],
                         help="nodes: each node's own timing, from its diagnostics (no load from this client); "

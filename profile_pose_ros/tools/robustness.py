@@ -23,6 +23,7 @@ from ..core import estimate_pose, pose_error, render_profile, sample_pose
 from ..core.compiled.render_kernel import trace_depth_fast
 from ..core.design.gauge_design import random_gauge
 from ..core.estimation.estimator import pose_nees, warm_up
+from ..core.estimation.result import REFINE_MODELS
 from ..core.model.gauge import Gauge
 from ..core.model.render import true_corners
 from ..resources import config_path
@@ -127,7 +128,12 @@ def _option(item: str) -> tuple[str, object]:
 
     name, _, text = item.partition("=")
     value = yaml.safe_load(text)
-    return name, float(text) if text.lower() in ("inf", "-inf") else value
+    if isinstance(value, str):  # YAML 1.1 reads 3e-4 (no dot) and inf as strings
+        try:
+            value = float(text)
+        except ValueError:
+            pass
+    return name, value
 
 
 def main(argv=None) -> int:
@@ -138,7 +144,7 @@ def main(argv=None) -> int:
                                  "random n=7", "random n=10"])
     parser.add_argument("--gauges", type=int, default=10, help="random gauges per random family")
     parser.add_argument("--poses", type=int, default=20, help="poses per gauge (shipped gauges: x gauges)")
-    parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
+    parser.add_argument("--refine-model", default="corners", choices=REFINE_MODELS)
     parser.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                         help="estimator options (pose_estimator's parameter names), e.g. spike_threshold=0 "
                              "max_residual_ratio=inf for the estimator without its spike filter and consistency test")

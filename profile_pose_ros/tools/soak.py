@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..core.estimation.result import REFINE_MODELS
 from .config_files import CELL_CONTROL_LAW, add_control_law_option
 from .experiment import Experiment, add_layout_options, control_hz, layout_from
 from .graph import CLIENT_CPU, Graph, cpu_percent
@@ -285,7 +286,7 @@ def main(argv=None) -> int:
     parser.add_argument("--rate", type=float, default=1000.0, help="profile rate (Hz); the controller runs at "
                         "250 Hz (83.3 Hz when the profile rate is below 200 Hz)")
     parser.add_argument("--interval", type=float, default=60.0, help="report every this many seconds")
-    parser.add_argument("--refine-model", default="corners", choices=["corners", "dense"])
+    parser.add_argument("--refine-model", default="corners", choices=REFINE_MODELS)
     parser.add_argument("--realtime-priority", type=int, default=0, help="SCHED_FIFO priority of the four loop "
                         "nodes (the simulator stays under the normal scheduler); 0: off")
     add_layout_options(parser)

@@ -36,8 +36,9 @@ DECODED, OFF_PLANE, INFINITE, ALL_INVALID = 0, 1, 2, 3
 # option vector layout
 O_EPS, O_TRIM, O_MINSEG, O_MINANGLE, O_MAXFACE, O_MAXOFF, O_ROBUST, O_THR, O_FLOOR, O_NOISE, O_SIGFLOOR, \
     O_WEIGHTED, O_REFINE, O_MAXIT, O_MAXREPROJ, O_MARGIN, O_PASSES, O_SPIKE, O_MAXRATIO, O_GAP, O_SEARCH, \
-    O_SEARCHSIG, O_DENSE, O_DMARGIN, O_DTHR, O_DFLOOR, O_DITER = range(27)
-N_OPTIONS = 27
+    O_SEARCHSIG, O_DENSE, O_DMARGIN, O_DTHR, O_DFLOOR, O_DITER, O_DENSESIG = range(28)
+N_OPTIONS = 28
+DENSE_NEVER, DENSE_ALWAYS, DENSE_WHEN_POORLY_DETERMINED = 0, 1, 2  # O_DENSE: refine_model corners, dense, auto
 
 JIT = dict(cache=True, error_model="numpy", nogil=True)  # numba.njit options of every compiled function
 

@@ -1,9 +1,9 @@
 """The estimator in one compiled call: corners, closed form (a four-ridge gauge's several starting poses,
 each refined, the lowest minimum kept unless a rival fits about as well), refinement, the basin search
 when the pose is poorly determined or its checks refuse it, the checks, and for a poorly determined pose
-its covariance by the unscented transform; or, with the dense model, the dense refinement from that pose
-and the same checks of its solution. A profile costs one dispatch from Python, the poorly determined ones
-too.
+its covariance by the unscented transform; or, with the dense model (or auto, for a poorly determined corner
+pose), the dense refinement from that pose and the same checks of its solution. A profile costs one dispatch
+from Python, the poorly determined ones too.
 """
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ import math
 import numpy as np
 
 from ..model.sym3 import largest_eigenvalue
-from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, DENSE_STAGE, INCONSISTENT, JIT, NO_CONVERGED,
-                    NO_START, NOT_FINITE, O_DENSE, O_DFLOOR, O_DITER, O_DMARGIN, O_DTHR, O_MARGIN, O_MAXIT, O_MAXRATIO,
-                    O_MAXREPROJ, O_NOISE, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT,
-                    REPROJECTION)
+from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, DENSE_ALWAYS, DENSE_STAGE,
+                    DENSE_WHEN_POORLY_DETERMINED, INCONSISTENT, JIT, NO_CONVERGED, NO_START, NOT_FINITE, O_DENSE,
+                    O_DENSESIG, O_DFLOOR, O_DITER, O_DMARGIN, O_DTHR, O_MARGIN, O_MAXIT, O_MAXRATIO, O_MAXREPROJ,
+                    O_NOISE, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT, REPROJECTION)
 from .dense_kernel import refine_dense
 from .estimate_kernel import (_cholesky, _closed_form, _detect, _quadratic, _refine, _residuals, _spd_inverse,
                               _unstack_residuals)
@@ -259,7 +259,9 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
         _residuals(q, u, w, corners, rot, t, r)
     status, err = _check(corners, rot, t, r, chi2, refined, width, length, opt, info, res_out)
     tried = 0
-    dense = opt[O_DENSE] > 0
+    # auto (DENSE_WHEN_POORLY_DETERMINED): the dense refinement where the corners determine the pose poorly
+    auto = opt[O_DENSE] == DENSE_WHEN_POORLY_DETERMINED and refined
+    dense = opt[O_DENSE] == DENSE_ALWAYS or auto and not _position_sigma(cov[3:, 3:]) <= opt[O_DENSESIG]
     # A corner pose that is poorly determined, or refused: perhaps a neighbouring basin holds the right minimum.
     # Not for a poorly determined one the dense refinement takes over: fitting every point, it finds its basin
     # from the corner pose as well as from the searched one (docs/estimator.md, Unclean profiles)
@@ -273,6 +275,8 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
             cov[:, :] = best_cov
             chi2 = _cost(q, u, w, corners, rot, t, corner_cov, True)
             status, err = _check(corners, rot, t, r, chi2, refined, width, length, opt, info, res_out)
+            if auto:
+                dense = not _position_sigma(cov[3:, 3:]) <= opt[O_DENSESIG]
     if status != OK:
         return status, iterations, fit_rms, err, cf_err, np.nan, tried
     if dense:

@@ -18,7 +18,7 @@ from .dense import DenseOptions
 from .solver import PoseSolution
 
 WEIGHTINGS = ("corner_covariance", "uniform")
-REFINE_MODELS = ("corners", "dense")
+REFINE_MODELS = ("corners", "dense", "auto")
 
 
 @dataclass(frozen=True)
@@ -26,7 +26,11 @@ class EstimatorOptions:
     corners: CornerOptions = CornerOptions()
     refine: bool = True
     refine_weighting: str = "corner_covariance"  # or "uniform": the paper's plain eq. (15)
-    refine_model: str = "corners"  # or "dense": then also fit every point's depth (core/estimation/dense.py)
+    # "corners" (the paper's), "dense": then also fit every point's depth (core/estimation/dense.py), or "auto":
+    # dense only where the corner pose's position std exceeds dense_above_sigma, the views whose corners
+    # determine them too poorly (the corner model's refusals and wrong poses are all there: docs/estimator.md)
+    refine_model: str = "corners"
+    dense_above_sigma: float = 2e-4  # m
     noise_std: float = 0.0  # m; 0 = estimate the depth noise from each face fit
     max_reprojection_error: float = 1e-4  # m; reject poses whose corners miss their ridges by more
     # reject a pose whose corner residuals are more than this many times (rms, in their own standard deviations)
@@ -79,7 +83,10 @@ class EstimatorOptions:
         v[codes.O_SEARCH] = 1.0 if self.basin_search and self.refine else 0.0
         v[codes.O_SEARCHSIG] = self.basin_search_min_sigma
         dense = DenseOptions()
-        v[codes.O_DENSE] = 1.0 if self.refine and self.refine_model == "dense" else 0.0
+        v[codes.O_DENSE] = ({"corners": codes.DENSE_NEVER, "dense": codes.DENSE_ALWAYS,
+                             "auto": codes.DENSE_WHEN_POORLY_DETERMINED}[self.refine_model]
+                            if self.refine else codes.DENSE_NEVER)
+        v[codes.O_DENSESIG] = self.dense_above_sigma
         v[codes.O_DMARGIN] = dense.ridge_margin
         v[codes.O_DTHR] = dense.outlier_threshold
         v[codes.O_DFLOOR] = dense.min_outlier_floor
