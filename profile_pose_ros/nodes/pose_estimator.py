@@ -75,9 +75,9 @@ PARAMETERS = [
           "4-ridge subset and weak-mode starts and keep the lowest minimum (a few ms for such profiles)."),
     Param("basin_search_min_sigma", 2.5e-4, "Search when the refined position's largest standard deviation "
           "exceeds this (m); the shipped gauge at 5 um noise is near 0.07 mm.", 0.0, 1.0),
-    Param("max_position_sigma", 5e-4, "Reject a pose whose position standard deviation (largest, m) exceeds this: "
-          "the view determines it too poorly for its covariance to be honest. The shipped gauges are near "
-          "0.02-0.2 mm at 5 um noise.", 1e-6, 1.0),
+    Param("max_position_sigma", 3.5e-4, "Reject a pose whose position standard deviation (largest, m) exceeds "
+          "this: the view determines it too poorly for its covariance to be honest (docs/estimator.md). The "
+          "shipped gauges are near 0.02-0.2 mm at 5 um noise.", 1e-6, 1.0),
     Param("noise_std", 0.0, "Profiler depth noise (m) for the covariance; 0 estimates it from each face fit.",
           0.0, 1e-3),
     Param("rdp_epsilon", 3e-4, "RDP tolerance for corner candidates (m).", 1e-6, 5e-3),

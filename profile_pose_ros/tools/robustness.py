@@ -46,6 +46,7 @@ CONDITIONS = {
     "gap over a corner": (BASE_NOISE, 0.0, "over"),
     "gap between corners": (BASE_NOISE, 0.0, "between"),
     "noise 15 um": (15e-6, 0.0, None),
+    "noise 25 um": (25e-6, 0.0, None),
     "noise 45 um": (45e-6, 0.0, None),
 }
 

@@ -42,9 +42,9 @@ class EstimatorOptions:
     basin_search: bool = True  # look for a lower minimum around a poorly determined pose (compiled/search_kernel.py)
     basin_search_min_sigma: float = 2.5e-4  # m; search when the refined position's largest std exceeds this
     # m; reject a pose whose position's largest std exceeds this: the profile determines it so poorly that its
-    # linearised covariance understates the error (docs/estimator.md, "Covariance"), so nothing downstream
-    # could weight it right. The shipped gauges are near 0.02-0.2 mm at 5 um noise.
-    max_position_sigma: float = 5e-4
+    # linearised covariance understates the error (NEES beyond 0.35 mm: docs/estimator.md, "Unclean
+    # profiles"), so nothing downstream could weight it right. The shipped gauges are near 0.02-0.2 mm at 5 um.
+    max_position_sigma: float = 3.5e-4
     # when corner detection finds a corner too few beside a gap, solve the gauge without the face the gap hid
     hidden_faces: bool = True
 
