@@ -113,7 +113,10 @@ def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: Estimator
                             first: int, last: int, seen: tuple[float, float], tolerance: float) -> PoseEstimate:
     """The pose with only faces first..last in view: the corners of the faces beyond them must lie beyond the
     faces seen (x span `seen`)."""
-    found = estimate(points, gauge.faces_in_view(first, last), options)
+    # no basin search: a placement whose corner pose the checks refuse is a wrong placement, whose corners fit
+    # no pose of that run (residuals thousands of times the noise), and searching around it cost most of a
+    # gap profile's slow tail without changing a decision (docs/estimator.md, Unclean profiles)
+    found = estimate(points, gauge.faces_in_view(first, last), options.with_changes(basin_search=False))
     if not found.ok:
         return found
     ridges = true_corners(gauge, found.R, found.t)[:, 0]
