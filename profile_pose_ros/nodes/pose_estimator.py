@@ -111,10 +111,11 @@ PARAMETERS = [
 ]
 
 # the parameters that are EstimatorOptions (or CornerOptions) fields, under the same names
-ESTIMATOR_PARAMETERS = ("refine", "refine_weighting", "refine_model", "dense_above_sigma", "noise_std", "rdp_epsilon",
-                        "trim_fraction", "min_segment_points", "min_corner_angle", "max_face_angle", "max_corner_offset",
-                        "robust_line_fit", "spike_threshold", "max_reprojection_error", "max_residual_ratio",
-                        "basin_search", "basin_search_min_sigma", "max_position_sigma", "hidden_faces")
+ESTIMATOR_PARAMETERS = ("refine", "refine_weighting", "refine_model", "dense_above_sigma", "noise_std",
+                        "rdp_epsilon", "trim_fraction", "min_segment_points", "min_corner_angle", "max_face_angle",
+                        "max_corner_offset", "robust_line_fit", "spike_threshold", "max_reprojection_error",
+                        "max_residual_ratio", "basin_search", "basin_search_min_sigma", "max_position_sigma",
+                        "hidden_faces")
 
 
 def options_from(values: dict) -> EstimatorOptions:
