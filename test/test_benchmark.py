@@ -71,7 +71,9 @@ def test_quick_study_runs_end_to_end(tmp_path):
     assert data["figure_three"]["0 um"]["ref_reproj"]["mean"] < 1e-3  # noise-free: exact
     for n in (4, 5):
         row = data["table_one"][f"n={n}"]
-        assert row["failure_rate"] < 0.5 and row["corner_crlb_pos_rms_um"] > 0 and row["dense_crlb_pos_rms_um"] > 0
+        # the corner model refuses a random gauge's views determined worse than max_position_sigma (0.35 mm):
+        # 20-35 % of n = 4 views (profile_pose robustness), so 20 quick poses stay well under 3/4 refused
+        assert row["failure_rate"] < 0.75 and row["corner_crlb_pos_rms_um"] > 0 and row["dense_crlb_pos_rms_um"] > 0
         assert row["wrong_minima"] == 0 and 0 <= row["searched_share"] <= 1
     assert "Outliers" in stdout and "Dense refinement" in stdout
     assert data["outliers"]["1 % spikes, this package (robust fits)"]["poses"] == 4 * 5
