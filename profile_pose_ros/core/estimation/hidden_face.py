@@ -70,7 +70,11 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
         return None
     seen = (detection.lines[0].x_min, detection.lines[-1].x_max)
     shown = len(detection.lines) - 1  # faces first..first + shown are in view
-    runs = [_with_faces_out_of_view(points, gauge, options, estimate, first, first + shown, seen, tolerance)
+    # no basin search: a placement whose corner pose the checks refuse is a wrong placement, whose corners fit
+    # no pose of that run (residuals thousands of times the noise), and searching around it cost most of a
+    # gap profile's slow tail without changing a decision (docs/estimator.md, Unclean profiles)
+    unsearched = options.with_changes(basin_search=False)  # once: each options object packs its kernel vector
+    runs = [_with_faces_out_of_view(points, gauge, unsearched, estimate, first, first + shown, seen, tolerance)
             for first in range(n - shown + 1)]
     accepted = [found for found in runs if found.ok]
     if len(accepted) == 1:
@@ -113,10 +117,7 @@ def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: Estimator
                             first: int, last: int, seen: tuple[float, float], tolerance: float) -> PoseEstimate:
     """The pose with only faces first..last in view: the corners of the faces beyond them must lie beyond the
     faces seen (x span `seen`)."""
-    # no basin search: a placement whose corner pose the checks refuse is a wrong placement, whose corners fit
-    # no pose of that run (residuals thousands of times the noise), and searching around it cost most of a
-    # gap profile's slow tail without changing a decision (docs/estimator.md, Unclean profiles)
-    found = estimate(points, gauge.faces_in_view(first, last), options.with_changes(basin_search=False))
+    found = estimate(points, gauge.faces_in_view(first, last), options)
     if not found.ok:
         return found
     ridges = true_corners(gauge, found.R, found.t)[:, 0]
