@@ -208,6 +208,7 @@ class PdCompensatorNode(RefusalCounter, Node):
                        if self.modal is None and v["shaper_frequency"] > 0 else None)
         self.anchor: np.ndarray | None = None  # base-frame rotation all rotation vectors are taken from
         self.reference: np.ndarray | None = None  # 6-vector in base coordinates
+        self.reference_came = 0.0  # time.monotonic() when it came: a planned step starts from then
         self.last_pose_stamp = 0.0
         self.pose_fresh_until = -math.inf  # time.monotonic() at which the newest pose turns stale
         self.last_measured: np.ndarray | None = None  # the newest pose, base coordinates (for the reference check)
@@ -320,6 +321,8 @@ class PdCompensatorNode(RefusalCounter, Node):
                                           f"{'current reference' if self.reference is not None else 'measured pose'}"
                                           f", beyond max_reference_step")
                 return
+            if self.reference is None or np.any(reference != self.reference):
+                self.reference_came = time.monotonic()
             self.reference = reference
 
     def _on_robot_state(self, _msg) -> None:
@@ -362,7 +365,7 @@ class PdCompensatorNode(RefusalCounter, Node):
         estimate; the PD law has nothing to add."""
         if self.modal is None or self.reference is None or self.probing:
             return
-        if self.modal.coast(self.reference, tick) is None:
+        if self.modal.coast(self.reference, tick, time.monotonic() - self.reference_came) is None:
             return
         self.coasted += 1
         self.corrections += 1
@@ -494,7 +497,7 @@ class PdCompensatorNode(RefusalCounter, Node):
         controller's tick that began the period (period_clock robot_state)."""
         self.law_stamp_ns = stamp_ns  # a correction the model makes alone (_coast) carries the newest pose it used
         if self.modal is not None:
-            self.modal.update(stamp, z, variance, self.reference, tick)
+            self.modal.update(stamp, z, variance, self.reference, tick, time.monotonic() - self.reference_came)
             if self.reference is None:
                 return  # no target yet: the watchdog keeps the output at zero
             self.last_error = self.reference - self.modal.position

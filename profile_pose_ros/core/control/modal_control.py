@@ -132,19 +132,20 @@ def minimum_jerk(s: np.ndarray) -> np.ndarray:
 
 
 def shaped_step_increments(step: float, impulses, speed: float, period_s: float, approach_share: float = 0.0,
-                           approach_s: float = 0.0) -> np.ndarray:
+                           approach_s: float = 0.0, lead_s: float = 0.0) -> np.ndarray:
     """Per-period increments (the first applied at once) that move a command by `step`, convolved with the
     shaper's (delay, gain) impulses and sampled at the period boundaries, which the controller joins by
     straight lines. The move: (1 - approach_share) of the step along a ramp, at least one period long, and
     the rest along a minimum-jerk approach of approach_s from the same start. Its speed never exceeds
-    `speed` (the ramp leaves the approach its peak speed; the gains are positive and sum to 1)."""
+    `speed` (the ramp leaves the approach its peak speed; the gains are positive and sum to 1) but in the
+    first increment, which also carries the move's first lead_s (the time the step waited for its period)."""
     share = approach_share if approach_s > 0 else 0.0
     ramp_speed = speed - (1.875 * share * abs(step) / approach_s if share else 0.0)  # minimum jerk's peak speed
     if share and ramp_speed <= 0:
         raise ValueError("modal control: the approach alone exceeds the planned speed")
     duration = max((1.0 - share) * abs(step) / ramp_speed if ramp_speed > 0 else 0.0, period_s)
     end = max(delay for delay, _ in impulses) + max(duration, approach_s if share else 0.0)
-    t = np.arange(1, int(np.ceil(end / period_s - 1e-9)) + 1) * period_s
+    t = lead_s + np.arange(1, int(np.ceil((end - lead_s) / period_s - 1e-9)) + 1) * period_s
     command = step * sum(gain * ((1.0 - share) * np.clip((t - delay) / duration, 0.0, 1.0)
                                  + (share * minimum_jerk((t - delay) / approach_s) if share else 0.0))
                          for delay, gain in impulses)
@@ -229,6 +230,7 @@ class ModalController:
         self.W[:, :2, :2] = q
         self.W[:, n, n] = np.asarray(design.offset_walk) ** 2
         self.skipped = 0  # poses within a period that another pose started: not used (over the node's life)
+        self.waited = 0.0  # how long the reference had waited for the period being run (update, coast)
         self.reset()
 
     def reset(self) -> None:
@@ -264,10 +266,12 @@ class ModalController:
         return self.x[:, 1].copy()
 
     def update(self, time: float, z: np.ndarray, variance: np.ndarray, reference: np.ndarray | None,
-               tick: float | None = None) -> np.ndarray:
+               tick: float | None = None, waited: float = 0.0) -> np.ndarray:
         """The velocity for this pose (zero without a reference: the pose is only measured). tick: the
         controller's tick that began this period (the compensator's period_clock robot_state, one fused pose
-        a STATE): then the ticks, not the poses' stamps, say how many periods passed (_update_on_tick)."""
+        a STATE): then the ticks, not the poses' stamps, say how many periods passed (_update_on_tick).
+        waited: how long the reference has waited for this period (s, on the caller's clock; see _plan_towards)."""
+        self.waited = waited
         if tick is not None:
             return self._update_on_tick(time, z, variance, reference, tick)
         T = self.design.period_s
@@ -348,11 +352,12 @@ class ModalController:
         self.last_tick = tick
         self.time = tick - median(self.ages) if self.ages else self.time + periods * T
 
-    def coast(self, reference: np.ndarray | None, tick: float) -> np.ndarray | None:
+    def coast(self, reference: np.ndarray | None, tick: float, waited: float = 0.0) -> np.ndarray | None:
         """The controller's period began at `tick` and no pose has come since the last (period_clock
         robot_state): the model carries the state one period and the law runs on it, so a planned step's
         feedforward leaves in its own period however late the estimate is. None once the filter has no state
         to carry (not started, or MAX_GAP periods without a pose: it starts again from the next one)."""
+        self.waited = waited
         if self.time is None or self.coasted >= MAX_GAP or self.last_tick is not None and tick <= self.last_tick:
             return None
         self._advance_to(tick)
@@ -460,14 +465,21 @@ class ModalController:
         return self.velocity
 
     def _plan_towards(self, reference: np.ndarray) -> None:
-        """Add to the feedforward the shaped move from where the plan ends to `reference`."""
+        """Add to the feedforward the shaped move from where the plan ends to `reference`. On a well damped
+        axis the move is planned as if it had begun when the reference came (up to a period before this one:
+        its first increment carries the wait), so a step takes as long after its reference whatever the phase
+        of the controller's period it came in; planned from this period it starts 0-1 period late, half a
+        period on average. The unshaped sliver that first increment carries decays within a cycle there; on a
+        less damped axis it would ring past the settle (offline, y at zeta 0.05: Mp up to 1 %), so those wait."""
         step = reference - self.planned
         if not np.any(step):
             return
         speed = FEEDFORWARD_SPEED_SHARE * self.speed_limit
         d = self.design
-        moves = [shaped_step_increments(s, imp, v, d.period_s, share, d.approach_s) if s else np.zeros(0)
-                 for s, imp, v, share in zip(step, self.impulses, speed, self.approach_share)]
+        lead = min(max(self.waited, 0.0), d.period_s)
+        moves = [shaped_step_increments(s, imp, v, d.period_s, share, d.approach_s, lead if z >= WELL_DAMPED else 0.0)
+                 if s else np.zeros(0)
+                 for s, imp, v, share, z in zip(step, self.impulses, speed, self.approach_share, d.damping)]
         length = max(self.feedforward.shape[1], max(len(m) for m in moves))
         feedforward = np.zeros((6, length))
         feedforward[:, :self.feedforward.shape[1]] = self.feedforward
