@@ -470,7 +470,7 @@ class ModalController:
         its first increment carries the wait), so a step takes as long after its reference whatever the phase
         of the controller's period it came in; planned from this period it starts 0-1 period late, half a
         period on average. The unshaped sliver that first increment carries decays within a cycle there; on a
-        less damped axis it would ring past the settle (offline, y at zeta 0.05: Mp up to 1 %), so those wait."""
+        less damped axis it would ring past the settle (docs/robot_side.md), so those wait."""
         step = reference - self.planned
         if not np.any(step):
             return
