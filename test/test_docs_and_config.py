@@ -77,11 +77,14 @@ def test_the_simulated_cells_loop_timing_and_clamps_are_the_experiments() -> Non
     assert set(defaults(BRIDGE)) >= set(bridge)
 
 
-def test_the_fast_steps_layer_sets_only_declared_parameters_within_range():
-    """config/fast_steps.yaml is layered over cell.yaml with --params-file: a misspelt key there would be
-    ignored by the node, and the cell would run the slow law without a word."""
+@pytest.mark.parametrize("layer, nodes", [("fast_steps.yaml", {"pd_compensator", "motoplus_bridge"}),
+                                          ("fast_steps_250hz.yaml", {"pd_compensator"})])
+def test_the_fast_steps_layers_set_only_declared_parameters_within_range(layer: str, nodes: set[str]):
+    """config/fast_steps.yaml (and at 250 Hz fast_steps_250hz.yaml) is layered over cell.yaml with
+    --params-file: a misspelt key there would be ignored by the node, and the cell would run the slow law
+    without a word."""
     modules = {m.NODE_NAME: m for m in node_modules()}
-    document = yaml.safe_load((ROOT / "config" / "fast_steps.yaml").read_text())
-    assert {"pd_compensator", "motoplus_bridge"} <= set(document)
+    document = yaml.safe_load((ROOT / "config" / layer).read_text())
+    assert nodes <= set(document)
     for node, block in document.items():
         assert_declared_and_in_range(modules[node], block["ros__parameters"])
