@@ -7,15 +7,24 @@
 #
 # --fast: the fast, damped steps instead (docs/robot_side.md): the arm's mode identified first on the cell
 # (profile_pose identify), the profiler at 1 kHz with each controller period's poses fused, planned steps
-# (config/fast_steps.yaml). Not recorded: a bag of 1 kHz profiles would be ~0.5 GB.
+# (config/fast_steps.yaml; with --rate 250 also config/fast_steps_250hz.yaml). Not recorded: a bag of 1 kHz
+# profiles would be ~0.5 GB.
 source "$(dirname "$0")/venv.sh"
 GAUGE="$ROOT/config/gauge_designed_n6.yaml"
 if [ "${1:-}" = "--fast" ]; then
   shift
   MODEL="$ROOT/runs/identified_modal.yaml"
+  LAYERS=("$ROOT/config/fast_steps.yaml")
+  previous=""
+  for argument in "$@"; do
+    if [ "$argument" = "--rate=250" ] || { [ "$previous" = "--rate" ] && [ "$argument" = "250" ]; }; then
+      LAYERS+=("$ROOT/config/fast_steps_250hz.yaml")
+    fi
+    previous="$argument"
+  done
   "$VENV/bin/profile_pose" identify --gauge "$GAUGE" --size 1.5 --params-out "$MODEL" --out "$ROOT/runs"
   exec "$VENV/bin/profile_pose" experiment --repeats 2 --gauge "$GAUGE" --no-bag --profile-rate 1000 \
     --estimator-in-driver --compensator-in-bridge \
-    --compensator-params "$ROOT/config/fast_steps.yaml" "$MODEL" "$@"
+    --compensator-params "${LAYERS[@]}" "$MODEL" "$@"
 fi
 exec "$VENV/bin/profile_pose" experiment --repeats 2 --gauge "$GAUGE" "$@"
