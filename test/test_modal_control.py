@@ -489,8 +489,6 @@ def test_on_the_controllers_clock_the_grid_follows_the_ticks_after_coasting() ->
     assert worst < 50e-6, worst
 
 
-
-
 def fast_steps_approach_share(*layers: str) -> float:
     """The reference_approach_share the compensator runs with, config/fast_steps.yaml's layers applied in turn
     over the node's default."""
