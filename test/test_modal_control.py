@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import yaml
 from scipy.integrate import solve_ivp
 
 from profile_pose_ros.core.control.compensator import (AxisKalman, Gains, InputShaper, pd_velocity, zero_vibration_impulses,
@@ -493,14 +492,14 @@ def fast_steps_approach_share(*layers: str) -> float:
     """The reference_approach_share the compensator runs with, config/fast_steps.yaml's layers applied in turn
     over the node's default."""
     from conftest import ROOT
-    from profile_pose_ros.nodes.pd_compensator import PARAMETERS
     from profile_pose_ros.nodes.parameters import defaults
+    from profile_pose_ros.nodes.pd_compensator import NODE_NAME, PARAMETERS
+    from profile_pose_ros.tools.param_files import node_parameters
 
-    share = defaults(PARAMETERS)["reference_approach_share"]
+    values = defaults(PARAMETERS)
     for layer in layers:
-        block = yaml.safe_load((ROOT / "config" / layer).read_text())["pd_compensator"]["ros__parameters"]
-        share = block.get("reference_approach_share", share)
-    return share
+        values.update(node_parameters(ROOT / "config" / layer, NODE_NAME, declared=set(values)))
+    return values["reference_approach_share"]
 
 
 def test_each_rates_fast_steps_layer_hands_the_approach_what_its_mf_allows() -> None:
@@ -514,17 +513,19 @@ def test_each_rates_fast_steps_layer_hands_the_approach_what_its_mf_allows() -> 
         "fast_steps.yaml", "fast_steps_250hz.yaml")
     assert at_250 < at_83
 
-    def read(axis: int, size: float, period_s: float, share: float) -> tuple[float, float]:
-        """(Mf improvement over the open loop less the paper's, 10-90 % rise), read per control period."""
+    def read(axis: int, size: float, period_s: float, share: float) -> dict:
+        """Table IV's metrics of a planned step, read per control period."""
         t, y, _ = planned_step(axis, 0.0, size, period_s, seconds=1.6, approach_share=share)
-        metrics = table_iv_metrics(*per_period(t, y, np.ones_like(y), period_s), size)
+        return table_iv_metrics(*per_period(t, y, np.ones_like(y), period_s), size)
+
+    def mf_above_paper(axis: int, size: float, closed_loop: dict) -> float:
         open_loop = table_iv_metrics(*open_loop_step(axis, size), size)["Mf_um"]
-        paper = PAPER_IMPROVEMENT["xyz"[axis]][round(size * 1e3)][2]
-        return 100 * (1 - metrics["Mf_um"] / open_loop) - paper, metrics["rise_time_s"]
+        return 100 * (1 - closed_loop["Mf_um"] / open_loop) - PAPER_IMPROVEMENT["xyz"[axis]][round(size * 1e3)][2]
 
     for axis in (0, 2):
         for size in (1e-3, 2e-3):
-            above_paper, rise = read(axis, size, 0.004, at_250)
+            fast = read(axis, size, 0.004, at_250)
+            above_paper, rise = mf_above_paper(axis, size, fast), fast["rise_time_s"]
             assert above_paper >= 0.5 and rise <= 0.125, (axis, size, above_paper, rise)
-            assert rise < read(axis, size, 0.004, at_83)[1] - 0.003
-    assert read(2, 2e-3, PERIOD, at_250)[0] < 0.0
+            assert rise < read(axis, size, 0.004, at_83)["rise_time_s"] - 0.003
+    assert mf_above_paper(2, 2e-3, read(2, 2e-3, PERIOD, at_250)) < 0.0
