@@ -571,6 +571,8 @@ class PdCompensatorNode(RefusalCounter, Node):
             values["poses_within_a_period"] = self.modal.skipped  # not used: one pose a period drives the law
             values["periods_coasted"] = self.coasted
             values["lost_increments_told"] = self.lost_told
+            if self.modal.ages:  # period_clock robot_state: how old the newest pose is at its STATE
+                values["pose_age_at_state_ms"] = round(median(self.modal.ages) * 1e3, 3)
         self.diagnostics_pub.publish(diagnostic_array(self, "compensator", "pd_compensator",
                                                       level, message, values))
 
