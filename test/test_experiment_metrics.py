@@ -87,7 +87,8 @@ def test_read_at_the_papers_bandwidth_a_4_ms_estimate_measures_mp_as_a_12_ms_one
     ring_t, ring = second_order_step(0.13, rate=250.0)
     ring_read = at_paper_bandwidth(ring_t, ring)
     assert np.max(np.abs(ring_read - ring)[ring_t > 0.05]) < 0.01 * np.max(ring - 1e-3)
-    assert step_metrics(ring_t, ring_read, 1e-3)["Mp"] == pytest.approx(step_metrics(ring_t, ring, 1e-3)["Mp"], rel=0.02)
+    ring_mp = step_metrics(ring_t, ring, 1e-3)["Mp"]
+    assert step_metrics(ring_t, ring_read, 1e-3)["Mp"] == pytest.approx(ring_mp, rel=0.02)
 
 
 def test_a_response_that_never_rises_has_metrics_not_an_error() -> None:
