@@ -519,9 +519,10 @@ def table_iv(runs: list[dict], axes: list[str], sizes: list[float], source: str 
                 checks.append({"axis": axis, "size_mm": size, "ours": gains, "paper": list(paper),
                                "closed_loop_end_fraction": c["end_fraction"][0], "reached": reached,
                                "at_least_paper": reached and all(g >= p for g, p in zip(gains, paper))})
+    read = (f"estimated poses, read at the paper's {PAPER_BANDWIDTH_HZ:.1f} Hz bandwidth" if source == "estimate"
+            else "true arm motion")
     text = table(["step", "", "Mp (%)", "zeta", "Mf (um)"], rows,
-                 f"Table IV on the simulated cell (from the {'estimated poses' if source == 'estimate' else 'true arm motion'}"
-                 "; mean ± std over repeats)")
+                 f"Table IV on the simulated cell (from the {read}; mean ± std over repeats)")
     return text, checks
 
 
