@@ -426,9 +426,9 @@ def at_paper_bandwidth(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     """The estimate as the paper's instrument read it: one pose per 12 ms period, so nothing above
     PAPER_BANDWIDTH_HZ (its Nyquist frequency). Read per 4 ms, a pose's noise comes in over three times that
     band, and Mp, the record's largest sample over the step, measures the noise's tail rather than the
-    arm's overshoot: on the weakly seen y (17 um a pose) it read 1.6-2.6 % of a 2 mm step the arm overshot by
-    0.2-0.5 % (docs/robot_side.md). Zero-phase (forward and back), so no time moves; the 10 Hz mode passes
-    whole. A record sampled no faster than the paper's is left as it is."""
+    arm's overshoot, most on the weakly seen y (docs/robot_side.md has the figures). Zero-phase (forward and
+    back), so no time moves; the 10 Hz mode passes whole. A record sampled no faster than the paper's is left
+    as it is."""
     from scipy.signal import butter, sosfiltfilt
 
     rate = 1.0 / float(np.median(np.diff(t))) if len(t) > 1 else 0.0
