@@ -507,16 +507,16 @@ def test_each_rates_fast_steps_layer_hands_the_approach_what_its_mf_allows() -> 
     end shows in the post-target spectrum than read per 12 ms: fast_steps_250hz.yaml's smaller approach
     share lets x and z rise sooner at 250 Hz with every Mf above the paper's, where the same share at 12 ms
     takes z 2 mm's Mf below it (which is why the 83.3 Hz layer keeps the larger one)."""
-    from profile_pose_ros.tools.experiment import PAPER_IMPROVEMENT, per_period, step_metrics as table_iv_metrics
+    from profile_pose_ros.tools.experiment import PAPER_IMPROVEMENT, step_metrics as table_iv_metrics, table_iv_reading
 
     at_83, at_250 = fast_steps_approach_share("fast_steps.yaml"), fast_steps_approach_share(
         "fast_steps.yaml", "fast_steps_250hz.yaml")
     assert at_250 < at_83
 
     def read(axis: int, size: float, period_s: float, share: float) -> dict:
-        """Table IV's metrics of a planned step, read per control period."""
+        """Table IV's metrics of a planned step, read as the experiment reads the estimate at this period."""
         t, y, _ = planned_step(axis, 0.0, size, period_s, seconds=1.6, approach_share=share)
-        return table_iv_metrics(*per_period(t, y, np.ones_like(y), period_s), size)
+        return table_iv_metrics(*table_iv_reading(t, y, np.ones_like(y), period_s), size)
 
     def mf_above_paper(axis: int, size: float, closed_loop: dict) -> float:
         open_loop = table_iv_metrics(*open_loop_step(axis, size), size)["Mf_um"]
