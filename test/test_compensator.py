@@ -445,10 +445,13 @@ def test_on_the_controllers_clock_the_pose_a_state_triggered_answers_the_next_st
         assert ros.spin_until(lambda: len(corrections) > count, 5.0)
         if k > first:  # (the first STATE has no earlier pose of its own: the law coasts)
             assert stamp_ns(corrections[-1]) == start + (k - 1) * tick, "answered with the pose it triggered"
-    # what the pose was worth at its STATE, for loop_delay's commissioning: a period and the third read late
-    reports: list[dict] = []
+    # what the pose was worth at its STATE, for loop_delay's commissioning: a period and the third read late;
+    # still told once the poses have gone stale and the law has forgotten them (the run is over)
+    reports: list[tuple[str, dict]] = []
     talker.create_subscription(DiagnosticArray, "/diagnostics", lambda m: reports.extend(
-        {v.key: v.value for v in status.values} for status in m.status if status.hardware_id == "pd_compensator"), 10)
-    assert ros.spin_until(lambda: any("pose_age_at_state_ms" in r for r in reports), 5.0)
-    age = float(next(r for r in reports if "pose_age_at_state_ms" in r)["pose_age_at_state_ms"])
+        (status.message, {v.key: v.value for v in status.values})
+        for status in m.status if status.hardware_id == "pd_compensator"), 10)
+    assert ros.spin_until(lambda: any(message.startswith("pose stale") for message, _ in reports), 5.0)
+    stale = next(values for message, values in reports if message.startswith("pose stale"))
+    age = float(stale["pose_age_at_state_ms"])
     assert age == pytest.approx(1e3 * (period + period / 3), abs=0.01)

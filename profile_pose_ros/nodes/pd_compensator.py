@@ -200,6 +200,9 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.robot_heard = -math.inf  # time.monotonic() of the newest robot_state: the bridge is armed
         self.period_poses: list[PeriodPose] = []  # period_clock robot_state: the poses since the last STATE
         self.pose_spacing: deque[float] = deque(maxlen=SPACING_WINDOW)  # between the poses' stamps (s)
+        # tick - the answering pose's stamp, a STATE: kept here, as the law forgets its own at a stale spell,
+        # and loop_delay is commissioned from the figure after the run has stopped
+        self.pose_ages_at_state: deque[float] = deque(maxlen=SPACING_WINDOW)
         self.last_rotation = np.eye(3)  # the newest pose's rotation (F in G): the tool's lever arm
         self.modal = modal_controller_from(v)
         # The PD law's filter and shaper; the modal law has its own filter and needs no shaper.
@@ -498,6 +501,8 @@ class PdCompensatorNode(RefusalCounter, Node):
         self.law_stamp_ns = stamp_ns  # a correction the model makes alone (_coast) carries the newest pose it used
         if self.modal is not None:
             self.modal.update(stamp, z, variance, self.reference, tick, time.monotonic() - self.reference_came)
+            if tick is not None:
+                self.pose_ages_at_state.append(tick - stamp)
             if self.reference is None:
                 return  # no target yet: the watchdog keeps the output at zero
             self.last_error = self.reference - self.modal.position
@@ -571,8 +576,8 @@ class PdCompensatorNode(RefusalCounter, Node):
             values["poses_within_a_period"] = self.modal.skipped  # not used: one pose a period drives the law
             values["periods_coasted"] = self.coasted
             values["lost_increments_told"] = self.lost_told
-            if self.modal.ages:  # period_clock robot_state: how old the newest pose is at its STATE
-                values["pose_age_at_state_ms"] = round(median(self.modal.ages) * 1e3, 3)
+            if self.pose_ages_at_state:  # period_clock robot_state: how old the newest pose is at its STATE
+                values["pose_age_at_state_ms"] = round(median(self.pose_ages_at_state) * 1e3, 3)
         self.diagnostics_pub.publish(diagnostic_array(self, "compensator", "pd_compensator",
                                                       level, message, values))
 
