@@ -71,7 +71,9 @@ PARAMETERS = [
     Param("await_reply", False, "Hold each STATE's answer (up to answer_wait periods) for the first correction that "
           "arrives after the STATE, instead of the one measured at its trigger: for a compensator that answers the "
           "controller's clock (its period_clock robot_state), whose correction is a reply to this STATE's "
-          "robot_state, stamped with a pose from before it.", read_only=True),
+          "robot_state, stamped with a pose from before it. Each such correction moves the arm by one period of "
+          "its velocity (corrections more than twice a period are still taken for their stamps' spacing).",
+          read_only=True),
     Param("frame", "base", "Cartesian frame of the increments: base, robot, tool or user.", read_only=True),
     Param("base_frame", "base", "frame_id of robot_state."),
     Param("mode", "loop", "loop: corrections from the compensator (`correction`). calibration: open-loop moves "
@@ -219,7 +221,7 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         word is not repeated."""
         with self._lock:
             received, self._velocities = self._velocities, []
-            spacing = self._spacing.share
+            spacing = self._spacing.share(answers=self.values["await_reply"])
         mono = time.monotonic()
         fresh = [(stamp, velocity) for stamp, velocity, arrived in received
                  if self._fresh_at(stamp, arrived, now, mono)]

@@ -9,6 +9,12 @@ travel. So each correction counts for the time it stands for, the corrections' u
 median, at most one period), and an answer sends the sum. At one correction a period that is the sum of
 their increments; at four a period, their mean velocity over the period; with one late at four a period,
 five quarters now and three next time, so that nothing is lost or sent twice.
+
+Corrections that answer the controller's STATEs (the bridge's await_reply, beside a compensator on the
+controller's clock) stand for one period each, whatever their stamps say. Their stamps are the fused
+poses' times, which wander by a few ms from period to period; a median of spacings capped at the period
+came out 4-8 % short of it, so every increment, a planned step's first one too, was cut by as much, at
+random from step to step, and the arm fell tens of um behind its plan.
 """
 from __future__ import annotations
 
@@ -18,6 +24,9 @@ from statistics import median
 import numpy as np
 
 SPACING_WINDOW = 16  # stamp spacings the median is taken over: a few controller periods at 1 kHz
+# Answers to STATEs come about once a period; corrections this much more often are a profiler's samples
+# (a PD law on a faster profiler behind await_reply), each standing for its spacing, not a period
+ANSWERS_AT_LEAST = 0.5
 
 
 class CorrectionSpacing:
@@ -34,11 +43,14 @@ class CorrectionSpacing:
             self._spacings.append(spacing if 0.0 < spacing < self.period_s else self.period_s)
         self._last_stamp = stamp_s
 
-    @property
-    def share(self) -> float:
-        """The time one correction stands for (s): the period until the spacing is known."""
-        return median(self._spacings) if self._spacings else self.period_s
+    def share(self, answers: bool = False) -> float:
+        """The time one correction stands for (s): the period until the spacing is known. answers: the
+        corrections answer the controller's STATEs, one a period each."""
+        if not self._spacings:
+            return self.period_s
+        spacing = median(self._spacings)
+        return self.period_s if answers and spacing >= ANSWERS_AT_LEAST * self.period_s else spacing
 
-    def increment(self, velocities: list[np.ndarray]) -> np.ndarray:
+    def increment(self, velocities: list[np.ndarray], answers: bool = False) -> np.ndarray:
         """The motion the corrections of one answer stand for (m, rad)."""
-        return np.sum(velocities, axis=0) * self.share
+        return np.sum(velocities, axis=0) * self.share(answers)
