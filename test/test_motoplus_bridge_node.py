@@ -28,6 +28,28 @@ def controller(ros, tmp_path):
     processes.stop(process)
 
 
+SLOW_PERIOD = 0.04  # long enough for a test's stand-in chain to answer each STATE within it on a loaded machine
+
+
+@pytest.fixture
+def slow_controller(ros, tmp_path):
+    """sim_cell's controller at SLOW_PERIOD, for a chain that answers its STATEs: its port."""
+    port = free_port()
+    command = processes.executable("sim_cell", MODULES["sim_cell"]) + ["--ros-args", *ros_params(
+        {"robot_port": port, "profiler_port": 0, "mcu_port": 0, "control_period": SLOW_PERIOD})]
+    process = processes.start(command, ros.domain_id, tmp_path / "sim_cell.log")
+    yield port
+    processes.stop(process)
+
+
+def answering_bridge(ros, port: int, **params) -> MotoPlusBridgeNode:
+    """The bridge armed on slow_controller, corrections fresh for 0.2 s."""
+    values = {"port": port, "period": SLOW_PERIOD, "max_age": 0.2, "watchdog": 2.0, "arm_on_start": True,
+              "diagnostics_period": 60.0, **params}
+    return ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
+        Parameter(k, value=v) for k, v in values.items()]))
+
+
 def test_arms_on_request_moves_on_fresh_corrections_only_and_rearms_after_a_fault(ros, controller) -> None:
     bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
         Parameter("port", value=controller), Parameter("max_age", value=0.1),
@@ -88,90 +110,70 @@ def test_arms_on_request_moves_on_fresh_corrections_only_and_rearms_after_a_faul
     assert ros.spin_until(lambda: future.done() and bridge.client.armed, 10.0, action=lambda: send(0.0))
 
 
-def test_each_state_is_answered_with_the_correction_made_after_it(ros, tmp_path) -> None:
+def test_each_state_is_answered_with_the_correction_made_after_it(ros, slow_controller) -> None:
     """The bridge holds a STATE's answer for the correction computed from that period's measurement, so it
     moves the robot one period after the trigger; answering at once would send the previous period's."""
-    period = 0.04  # long enough for this test's chain to answer within it on a loaded machine
-    port = free_port()
-    command = processes.executable("sim_cell", MODULES["sim_cell"]) + ["--ros-args", *ros_params(
-        {"robot_port": port, "profiler_port": 0, "mcu_port": 0, "control_period": period})]
-    sim = processes.start(command, ros.domain_id, tmp_path / "sim_cell.log")
-    try:
-        bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
-            Parameter("port", value=port), Parameter("period", value=period), Parameter("max_age", value=0.2),
-            Parameter("watchdog", value=2.0), Parameter("arm_on_start", value=True),
-            Parameter("diagnostics_period", value=60.0)]))
-        chain = ros.node("chain")  # stands in for profiler -> estimator -> compensator, triggered by each STATE
-        corrections = chain.create_publisher(TwistStamped, "correction", 10)
+    period = SLOW_PERIOD
+    bridge = answering_bridge(ros, slow_controller)
+    chain = ros.node("chain")  # stands in for profiler -> estimator -> compensator, triggered by each STATE
+    corrections = chain.create_publisher(TwistStamped, "correction", 10)
 
-        def on_state(_msg: PoseStamped) -> None:
-            msg = TwistStamped()
-            msg.header.stamp = Time(nanoseconds=time.time_ns()).to_msg()
-            msg.header.frame_id = "base"
-            msg.twist.linear.x = 1e-4
-            corrections.publish(msg)
+    def on_state(_msg: PoseStamped) -> None:
+        msg = TwistStamped()
+        msg.header.stamp = Time(nanoseconds=time.time_ns()).to_msg()
+        msg.header.frame_id = "base"
+        msg.twist.linear.x = 1e-4
+        corrections.publish(msg)
 
-        chain.create_subscription(PoseStamped, "robot_state", on_state, 10)
-        assert ros.spin_until(lambda: bridge.client.armed, 30.0), bridge.client.last_error
+    chain.create_subscription(PoseStamped, "robot_state", on_state, 10)
+    assert ros.spin_until(lambda: bridge.client.armed, 30.0), bridge.client.last_error
 
-        def ages(count: int) -> np.ndarray:
-            """Correction age when its increment left (s), over the next `count` answers."""
-            bridge.latency.report()  # a new window
-            assert ros.spin_until(lambda: len(bridge.latency) >= count, 30.0), vars(bridge.client.counters)
-            return np.array(bridge.latency.snapshot())
+    def ages(count: int) -> np.ndarray:
+        """Correction age when its increment left (s), over the next `count` answers."""
+        bridge.latency.report()  # a new window
+        assert ros.spin_until(lambda: len(bridge.latency) >= count, 30.0), vars(bridge.client.counters)
+        return np.array(bridge.latency.snapshot())
 
-        held = ages(20)
-        assert np.median(held) < 0.5 * period, held
-        assert bridge.set_parameters([Parameter("answer_wait", value=0.0)])[0].successful  # at once
-        at_once = ages(20)
-        assert np.median(at_once) > 0.9 * period, at_once
-    finally:
-        processes.stop(sim)
+    held = ages(20)
+    assert np.median(held) < 0.5 * period, held
+    assert bridge.set_parameters([Parameter("answer_wait", value=0.0)])[0].successful  # at once
+    at_once = ages(20)
+    assert np.median(at_once) > 0.9 * period, at_once
 
 
-def test_an_awaited_answer_moves_the_arm_one_period_of_its_velocity_however_its_stamp_wanders(ros, tmp_path) -> None:
+def test_an_awaited_answer_moves_the_arm_one_period_of_its_velocity_however_its_stamp_wanders(ros, slow_controller) -> None:
     """await_reply: each correction answers a STATE, stamped with the poses it was made from, which wander
     within the period. Judged by what the controller applied (/sim/robot_increment): every move is a whole
     period of the velocity (or two, when an answer missed its STATE), never the stamps' spacing, which
     read short and cut each increment by as much."""
-    period, velocity = 0.04, 1e-3  # 40 um a period
-    port = free_port()
-    command = processes.executable("sim_cell", MODULES["sim_cell"]) + ["--ros-args", *ros_params(
-        {"robot_port": port, "profiler_port": 0, "mcu_port": 0, "control_period": period})]
-    sim = processes.start(command, ros.domain_id, tmp_path / "sim_cell.log")
-    try:
-        bridge = ros.add(MotoPlusBridgeNode(context=ros.context, parameter_overrides=[
-            Parameter("port", value=port), Parameter("period", value=period), Parameter("max_age", value=0.2),
-            Parameter("watchdog", value=2.0), Parameter("arm_on_start", value=True),
-            Parameter("await_reply", value=True), Parameter("diagnostics_period", value=60.0)]))
-        chain = ros.node("chain")  # a compensator on the controller's clock: one answer a STATE
-        corrections = chain.create_publisher(TwistStamped, "correction", 10)
-        answered = [0]
+    period, velocity = SLOW_PERIOD, 1e-3  # 40 um a period
+    bridge = answering_bridge(ros, slow_controller, await_reply=True)
+    chain = ros.node("chain")  # a compensator on the controller's clock: one answer a STATE
+    corrections = chain.create_publisher(TwistStamped, "correction", 10)
+    answered = [0]
 
-        def on_state(_msg: PoseStamped) -> None:
-            msg = TwistStamped()
-            # the fused poses' time slides back through the period and jumps: three spacings of 7/8 of a
-            # period, then one of 11/8, so the stamps' spacing (capped at the period) reads 7/8
-            wander = (answered[0] % 4) * period / 8
-            answered[0] += 1
-            msg.header.stamp = Time(nanoseconds=time.time_ns() - int(wander * 1e9)).to_msg()
-            msg.header.frame_id = "base"
-            msg.twist.linear.x = velocity
-            corrections.publish(msg)
+    def on_state(_msg: PoseStamped) -> None:
+        msg = TwistStamped()
+        # the fused poses' time slides back through the period and jumps: three spacings of 7/8 of a
+        # period, then one of 11/8, so the stamps' spacing (capped at the period) reads 7/8
+        wander = (answered[0] % 4) * period / 8
+        answered[0] += 1
+        msg.header.stamp = Time(nanoseconds=time.time_ns() - int(wander * 1e9)).to_msg()
+        msg.header.frame_id = "base"
+        msg.twist.linear.x = velocity
+        corrections.publish(msg)
 
-        chain.create_subscription(PoseStamped, "robot_state", on_state, 10)
-        applied: list[float] = []
-        chain.create_subscription(TwistStamped, "/sim/robot_increment",
-                                  lambda m: applied.append(m.twist.linear.x), 1000)
-        # from the fifth armed period on: the session's first may be armed part of the way through
-        assert ros.spin_until(lambda: bridge.client.armed and len(applied) > 5, 30.0), bridge.client.last_error
-        before = len(applied)
-        assert ros.spin_until(lambda: sum(1 for a in applied[before:] if a) >= 30, 30.0), applied
-        moves = np.array([a for a in applied[before:] if a]) / (velocity * period)
-        assert np.allclose(moves, np.round(moves), atol=0.01), moves  # whole periods, to the controller's 1 um
-        assert np.mean(np.round(moves) == 1) >= 0.8, moves
-    finally:
-        processes.stop(sim)
+    chain.create_subscription(PoseStamped, "robot_state", on_state, 10)
+    applied: list[float] = []
+    chain.create_subscription(TwistStamped, "/sim/robot_increment",
+                              lambda m: applied.append(m.twist.linear.x), 1000)
+    # from the fifth armed period on: the session's first may be armed part of the way through
+    assert ros.spin_until(lambda: bridge.client.armed and len(applied) > 5, 30.0), bridge.client.last_error
+    before = len(applied)
+    assert ros.spin_until(lambda: sum(1 for a in applied[before:] if a) >= 30, 30.0), applied
+    moves = np.array([a for a in applied[before:] if a]) / (velocity * period)
+    assert np.allclose(moves, np.round(moves), atol=0.01), moves  # whole periods, to the controller's 1 um
+    assert np.mean(np.round(moves) == 1) >= 0.8, moves
 
 
 @pytest.mark.parametrize("case", ["one correction", "stamped an hour ahead", "stamped 10 ms ahead",
