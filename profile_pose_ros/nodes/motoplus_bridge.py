@@ -219,16 +219,16 @@ class MotoPlusBridgeNode(RefusalCounter, Node):
         their arrival on this node's monotonic clock, with the newest one's trigger time. None (a zero
         increment) when there is none: a correction moves the arm once only, so a dead compensator's last
         word is not repeated."""
-        with self._lock:
-            received, self._velocities = self._velocities, []
-            spacing = self._spacing.share(answers=self.values["await_reply"])
         mono = time.monotonic()
-        fresh = [(stamp, velocity) for stamp, velocity, arrived in received
-                 if self._fresh_at(stamp, arrived, now, mono)]
-        if not fresh:
-            self.stale_periods += 1
-            return None
-        return np.sum([velocity for _, velocity in fresh], axis=0) * spacing, max(stamp for stamp, _ in fresh) * 1e-9
+        with self._lock:  # the spacing is read under the lock the executor thread adds to it under
+            received, self._velocities = self._velocities, []
+            fresh = [(stamp, velocity) for stamp, velocity, arrived in received
+                     if self._fresh_at(stamp, arrived, now, mono)]
+            if not fresh:
+                self.stale_periods += 1
+                return None
+            move = self._spacing.increment([velocity for _, velocity in fresh], answers=self.values["await_reply"])
+        return move, max(stamp for stamp, _ in fresh) * 1e-9
 
     def _fresh_at(self, stamp_ns: int, arrived: float, now: float, now_monotonic: float) -> bool:
         """A correction may still move the arm: its stamp within [-max_future, max_age] of now (wall) and its
