@@ -73,9 +73,45 @@ def test_a_gap_over_a_whole_face_leaves_its_neighbours_to_place_it(rng):
             assert "poorly determined" in estimate.reason
             refused += 1
             continue
-        assert estimate.hidden_face == face and len(estimate.corners) == gauge.n_ridges - 1
+        assert (estimate.hidden_face, estimate.faces_hidden) == (face, 1)
+        assert len(estimate.corners) == gauge.n_ridges - 1
         nees.append(pose_nees(estimate, rotation, t))
     assert refused <= 8 and np.median(nees) < 12 and max(nees) < 40
+
+
+def two_narrow_faces_hidden(rng, count: int):
+    """(gauge, rotation, t, face, profile) of random seven-ridge gauges, each with a gap over the corner
+    between two adjacent narrow faces that takes both faces and their outer corners (all but less than a
+    segment's points of each)."""
+    while count:
+        gauge = random_gauge(7, rng)
+        rotation, t = sample_pose(gauge, rng)
+        corners = true_corners(gauge, rotation, t)[:, 0]
+        pairs = np.flatnonzero(corners[2:] - corners[:-2] < 1.2e-2) + 1  # faces k, k + 1 span under 12 mm
+        if len(pairs):
+            face = int(rng.choice(pairs))
+            points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+            yield gauge, rotation, t, face, hidden(points, corners[face - 1] - 5e-4, corners[face + 1] + 5e-4)
+            count -= 1
+
+
+@pytest.mark.parametrize("refine_model", ["corners", "auto"])
+def test_a_gap_over_two_narrow_faces_leaves_their_neighbours_to_place_them(rng, refine_model):
+    """Corner detection finds two corners too few; the faces either side of the gap cross at one virtual
+    corner of the gauge without both faces, and the pose is right."""
+    accepted = 0
+    for gauge, rotation, t, face, points in two_narrow_faces_hidden(rng, 12):
+        assert not estimate_pose(points, gauge, hidden_faces=False, refine_model=refine_model).ok
+        estimate = estimate_pose(points, gauge, refine_model=refine_model)
+        if not estimate.ok:  # the virtual corner of two nearly parallel faces determines the pose poorly
+            assert "poorly determined" in estimate.reason, estimate.reason
+            continue
+        assert (estimate.hidden_face, estimate.faces_hidden) == (face, 2)
+        assert len(estimate.corners) == gauge.n_ridges - 2
+        position, rotation_error = pose_error(estimate.R, estimate.t, rotation, t)
+        assert position < 1e-3 and rotation_error < 5e-3
+        accepted += 1
+    assert accepted >= 8
 
 
 @pytest.mark.parametrize("end", ["left", "right"])

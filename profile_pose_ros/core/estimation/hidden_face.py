@@ -1,12 +1,13 @@
 """A face no point falls on: a gap in the profile (an occlusion, a dropout, a dirty patch) wider than a
-narrow face hides the face and both its corners, and corner detection finds one corner too few.
+narrow face hides the face and both its corners, and corner detection finds one corner too few; a gap over
+the corner between two narrow faces hides both, and it finds two too few.
 
 The two faces beside the gap are still seen. Their planes cross in a line of the gauge — a virtual ridge —
-and their fitted lines cross where that line pierces the laser plane, so the gauge without the hidden face
+and their fitted lines cross where that line pierces the laser plane, so the gauge without the hidden faces
 (Gauge.without_face) describes the profile exactly and the usual estimator solves it. The corner in the gap
 is an extrapolation of the two fits, and its covariance (from the same line-fit Jacobian) says how far.
 
-Which face is hidden follows from where the gap is: the one between the two face fits either side of it.
+Which faces are hidden follows from where the gap is: those between the two face fits either side of it.
 With no such gap, faces may be out of view at the ends (the gauge near the edge of the profiler's field, or
 a gap over the end of the lit span): the faces seen are then a run of the gauge's (Gauge.faces_in_view), every
 placement of the run is tried, and only an unambiguous answer is kept. Every answer is checked against the
@@ -29,6 +30,8 @@ from .stages import detect_corners
 # a run between two valid points wider than this many point pitches is a gap, not the profiler's spacing
 GAP_PITCHES = 3.0
 MIN_RIDGES = 4  # the fewest the estimator solves: a gauge seen in part must keep as many
+# the most adjacent faces one gap may hide: two narrow faces side by side under a gap over their corner
+MAX_HIDDEN_IN_A_GAP = 2
 
 
 def _valid_x(points: np.ndarray) -> np.ndarray:
@@ -47,8 +50,8 @@ def profile_gaps(x: np.ndarray, pitch: float) -> list[tuple[float, float]]:
 def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
                                 estimate: Callable[[np.ndarray, Gauge, EstimatorOptions], PoseEstimate]
                                 ) -> PoseEstimate | None:
-    """The pose with one face hidden, or a refusal saying why not, or None when the profile does not look
-    like one face hidden (not exactly one corner missing): the caller's refusal stands."""
+    """The pose with one or two adjacent faces hidden by a gap or faces out of view at the ends, or a refusal
+    saying why not, or None when the profile looks like none of these: the caller's refusal stands."""
     n = gauge.n_ridges
     x = _valid_x(points)
     if n < MIN_RIDGES + 1 or len(x) < 3:  # the gauge without a face must keep MIN_RIDGES
@@ -56,10 +59,13 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     pitch = float(np.median(np.diff(x)))
     # a face that showed fewer points than a segment needs would not have been found either
     tolerance = options.corners.min_segment_points * pitch
-    for before, after in profile_gaps(x, pitch)[:2]:
-        found = _with_face_hidden_in_gap(points, gauge, options, estimate, before, after, tolerance)
-        if found is not None:
-            return found
+    for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
+        if n - count < MIN_RIDGES:
+            break
+        for before, after in profile_gaps(x, pitch)[:2]:
+            found = _with_faces_hidden_in_gap(points, gauge, options, estimate, before, after, tolerance, count)
+            if found is not None:
+                return found
     # faces out of view at the ends (the gauge near the edge of the profiler's field, or a gap over the end of
     # the lit span, which may take the next face's few points with it): the lines seen are a run of the
     # gauge's faces, one shorter per corner missing
@@ -85,32 +91,36 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     return None
 
 
-def _with_face_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
-                             before: float, after: float, tolerance: float) -> PoseEstimate | None:
+def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
+                              before: float, after: float, tolerance: float, count: int) -> PoseEstimate | None:
+    """The pose with `count` adjacent faces hidden by the gap (before, after), or None when the faces found
+    either side of it do not leave that many out."""
     n = gauge.n_ridges
     # The virtual corner may lie far outside the footprint (faces nearly parallel): that check is made here,
     # for the real corners only. Its residual may be large and still within its (extrapolated) covariance: the
     # consistency test, which weighs it so, stands for the absolute reprojection bound.
     relaxed = replace(options, footprint_margin=math.inf, max_reprojection_error=math.inf).with_changes(
         virtual_corner_gap=0.5 * (before + after))
-    detection = detect_corners(points, n - 1, relaxed.corners)
+    detection = detect_corners(points, n - count, relaxed.corners)
     if not detection.ok:
         return None
     lines = detection.lines
-    virtual = next((i for i in range(n - 1) if lines[i].x_max <= before and lines[i + 1].x_min >= after), None)
+    virtual = next((i for i in range(n - count) if lines[i].x_max <= before and lines[i + 1].x_min >= after), None)
     if virtual is None:
         return None
     face = virtual + 1
-    where = f"face {face} hidden by the gap at x {before * 1e3:.1f}..{after * 1e3:.1f} mm"
-    found = estimate(points, gauge.without_face(face), relaxed)
+    faces = f"face {face}" if count == 1 else f"faces {face}..{face + count - 1}"
+    where = f"{faces} hidden by the gap at x {before * 1e3:.1f}..{after * 1e3:.1f} mm"
+    found = estimate(points, gauge.without_face(face, count), relaxed)
     if not found.ok:
         return replace(found, reason=f"{found.reason} (with {where})")
-    hidden = true_corners(gauge, found.R, found.t)[[face - 1, face], 0]
+    hidden = true_corners(gauge, found.R, found.t)[face - 1:face + count, 0]  # the ridges bounding them
     reason = _outside_footprint(found, virtual, gauge, options)
     if not reason and (hidden.min() < before - tolerance or hidden.max() > after + tolerance):
-        reason = (f"the pose puts face {face} at x {hidden.min() * 1e3:.1f}..{hidden.max() * 1e3:.1f} mm, where "
+        reason = (f"the pose puts {faces} at x {hidden.min() * 1e3:.1f}..{hidden.max() * 1e3:.1f} mm, where "
                   f"the profile has points")
-    return rejected(found, f"{reason} (with {where})") if reason else replace(found, hidden_face=face)
+    return rejected(found, f"{reason} (with {where})") if reason else replace(found, hidden_face=face,
+                                                                              faces_hidden=count)
 
 
 def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
@@ -128,7 +138,8 @@ def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: Estimator
         return rejected(found, f"the pose puts the corner right of face {last} at x {ridges[last] * 1e3:.1f} mm, "
                                f"where the profile has points")
     one_hidden = {(1, gauge.n_ridges): 0, (0, gauge.n_ridges - 1): gauge.n_ridges}.get((first, last))
-    return replace(found, hidden_face=one_hidden, faces_in_view=(first, last))
+    return replace(found, hidden_face=one_hidden, faces_hidden=0 if one_hidden is None else 1,
+                   faces_in_view=(first, last))
 
 
 def _outside_footprint(found: PoseEstimate, virtual: int, gauge: Gauge, options: EstimatorOptions) -> str:

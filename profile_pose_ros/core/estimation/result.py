@@ -118,6 +118,7 @@ class PoseEstimate:
     search_starts: int = 0  # starting poses tried by the basin search (0: the pose was well determined)
     position_sigma: float | None = None  # position_sigma(covariance[:3, :3]) when the compiled path computed it
     hidden_face: int | None = None  # the face a gap hid, or the one end face out of view (hidden_face.py)
+    faces_hidden: int = 0  # how many adjacent faces from hidden_face the gap hid (1 or 2; 0: none)
     faces_in_view: tuple[int, int] | None = None  # first, last: when faces beyond the profile's ends were not seen
 
 

@@ -135,10 +135,13 @@ class Gauge:
         """(n, 3) ridge directions [u, 1, w]."""
         return np.column_stack([self.u, np.ones_like(self.u), self.w])
 
-    def without_face(self, face: int) -> "Gauge":
-        """The gauge as a profile that misses `face` sees it: its neighbours meet at a virtual ridge, where
-        their planes cross. Same frame and footprint, so a pose of this gauge is a pose of the real one."""
-        return self._with_faces(f"without face {face}", np.arange(len(self.normals)) != face)
+    def without_face(self, face: int, count: int = 1) -> "Gauge":
+        """The gauge as a profile that misses `count` adjacent faces from `face` sees it: the faces either side
+        meet at a virtual ridge, where their planes cross. Same frame and footprint, so a pose of this gauge is
+        a pose of the real one."""
+        index = np.arange(len(self.normals))
+        label = f"without face {face}" if count == 1 else f"without faces {face}..{face + count - 1}"
+        return self._with_faces(label, (index < face) | (index >= face + count))
 
     def faces_in_view(self, first: int, last: int) -> "Gauge":
         """The gauge as a profile that shows only faces first..last sees it (the others beyond the ends of its
