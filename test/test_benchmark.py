@@ -11,10 +11,10 @@ from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
 from profile_pose_ros.tools.numpy_baseline import estimate_baseline
 
 
-def run_quick(tool: str, report_name: str, out: Path) -> tuple[str, dict]:
+def run_quick(tool: str, report_name: str, out: Path, *extra: str) -> tuple[str, dict]:
     """Run `profile_pose <tool>` in its --quick mode; its stdout and the JSON report it wrote."""
     exe = Path(sys.executable).parent / "profile_pose"
-    result = subprocess.run([str(exe), tool, "--quick", "--out", str(out)], capture_output=True, text=True,
+    result = subprocess.run([str(exe), tool, "--quick", "--out", str(out), *extra], capture_output=True, text=True,
                             timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
     (report,) = out.glob(f"*/{report_name}")
@@ -82,7 +82,7 @@ def test_quick_study_runs_end_to_end(tmp_path):
 
 
 def test_quick_robustness_runs_every_condition_and_the_shipped_gauges_publish_no_wrong_pose(tmp_path):
-    stdout, data = run_quick("robustness", "robustness.json", tmp_path)
+    stdout, data = run_quick("robustness", "robustness.json", tmp_path, "--bound")
     cells = data["cells"]
     conditions = {name.split(" | ")[1] for name in cells}
     assert {"clean", "spikes 5 %", "gap over a corner", "gap between corners", "noise 45 um"} <= conditions
@@ -91,3 +91,7 @@ def test_quick_robustness_runs_every_condition_and_the_shipped_gauges_publish_no
     assert all(shipped[f"{gauge} | spikes {rate} %"]["refused_pct"] == 0
                for gauge in ("gauge_paper_n5.yaml", "gauge_designed_n6.yaml") for rate in ("0.5", "1", "2", "5"))
     assert "profiles," in stdout and "accepted" in stdout
+    # --bound: every cell that refused something holds its refusals against the Cramer-Rao bound
+    refusing = [c for c in cells.values() if c["refused_pct"] > 0]
+    assert refusing and all(0 <= c["refused_beyond_bound_pct"] <= c["refused_pct"] + 1e-9 for c in refusing)
+    assert all(c["wrong_if_refused_published"] >= 0 for c in refusing) and "refused beyond bound %" in stdout

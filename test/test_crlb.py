@@ -3,9 +3,10 @@ the corner model, and the refined estimator close to the corner-model bound (it 
 import numpy as np
 
 from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
-from profile_pose_ros.core.design.crlb import corner_crlb, dense_crlb, depth_jacobian, position_rotation_rms
+from profile_pose_ros.core.design.crlb import (corner_crlb, dense_crlb, dense_crlb_of_points, depth_jacobian,
+                                              position_rotation_rms)
 from profile_pose_ros.core.model.poses import LOOKING_DOWN
-from profile_pose_ros.core.model.render import DEFAULT_PROFILER
+from profile_pose_ros.core.model.render import DEFAULT_PROFILER, true_corners
 from profile_pose_ros.core.model.rotation import so3_log
 
 
@@ -53,3 +54,19 @@ def test_analytic_dense_bound_matches_finite_differences(gauge):
     by_differences = ros_covariance(LOOKING_DOWN, (5e-6) ** 2 * np.linalg.inv(numeric.T @ numeric))
     analytic = dense_crlb(gauge, LOOKING_DOWN, t, 5e-6)
     assert np.allclose(np.sqrt(np.diag(analytic)), np.sqrt(np.diag(by_differences)), rtol=0.02)
+
+
+def test_the_bound_of_a_profile_with_a_gap_is_that_of_the_points_left(gauge, rng):
+    """dense_crlb_of_points: every point, the full view's bound; a gap over a corner, a weaker one (the bound
+    `profile_pose robustness --bound` holds a refusal against)."""
+    rotation, t = sample_pose(gauge, rng)
+    points = render_profile(gauge, rotation, t)
+    full = dense_crlb_of_points(gauge, points, rotation, t, 5e-6)
+    np.testing.assert_allclose(full, dense_crlb(gauge, rotation, t, 5e-6), rtol=1e-9, atol=1e-24)
+    corner = true_corners(gauge, rotation, t)[2, 0]
+    gapped = points.copy()
+    gapped[np.abs(points[:, 0] - corner) < 6e-3, 1] = np.nan
+    weaker = dense_crlb_of_points(gauge, gapped, rotation, t, 5e-6)
+    difference = weaker - full
+    assert np.min(np.linalg.eigvalsh(0.5 * (difference + difference.T))) > -1e-18
+    assert np.trace(weaker[:3, :3]) > 1.05 * np.trace(full[:3, :3])

@@ -7,10 +7,18 @@ truth is beyond the chi-square(6) 99.9 % quantile *and* its position is more tha
 the covariance does not own. Gaps are 10 % of the lit
 span, centred on a corner (over) or half-way between two (between). Both cores are used; --quick is the
 test's reduced run.
+
+--bound asks, of every refused profile, what the best possible estimator could have done with it: the dense
+Cramér-Rao bound at the true pose for the points the profile has, whether its position std exceeds the
+estimator's gate (then no estimator determines the view well enough to pass it), and the chance that an
+estimator reaching the bound would have been wrong had it published the pose (a Gaussian at the bound).
+Refusals beyond the bound are the view's, not the estimator's; publishing them costs that many wrong poses.
 """
 from __future__ import annotations
 
 import argparse
+import multiprocessing
+import os
 import re
 import sys
 import time
@@ -21,9 +29,10 @@ import numpy as np
 
 from ..core import estimate_pose, pose_error, render_profile, sample_pose
 from ..core.compiled.render_kernel import trace_depth_fast
+from ..core.design.crlb import dense_crlb_of_points
 from ..core.design.gauge_design import random_gauge
 from ..core.estimation.estimator import pose_nees, warm_up
-from ..core.estimation.result import REFINE_MODELS
+from ..core.estimation.result import REFINE_MODELS, EstimatorOptions, position_sigma
 from ..core.model.gauge import Gauge
 from ..core.model.render import true_corners
 from ..resources import config_path
@@ -73,13 +82,22 @@ def with_gap(points: np.ndarray, corners_x: np.ndarray, placement: str, rng: np.
     return gapped
 
 
+def wrong_if_published(covariance: np.ndarray, draws: int = 20000) -> float:
+    """The chance that a pose with this (ROS-order) error covariance is wrong: more than WRONG_POSITION or
+    WRONG_ROTATION off (fixed draws, so that a run repeats)."""
+    errors = np.random.default_rng(0).multivariate_normal(np.zeros(6), covariance, draws)
+    return float(((np.linalg.norm(errors[:, :3], axis=1) > WRONG_POSITION) |
+                  (np.linalg.norm(errors[:, 3:], axis=1) > WRONG_ROTATION)).mean())
+
+
 def family_trial(task: tuple) -> list[dict]:
     """Every condition on the same poses of one gauge: one record per profile."""
-    family, gauge_index, seed, poses, options = task
+    family, gauge_index, seed, poses, overrides, bound = task
     gauge = family_gauges(family, gauge_index + 1, seed)[gauge_index]
     rng = np.random.default_rng(seed * 7919 + gauge_index)
-    warm_up(gauge)  # the kernels loaded (or built) before the first timed profile
-    records = []
+    options = EstimatorOptions().with_changes(**overrides)  # once, as a node holds them
+    warm_up(gauge, options)  # the kernels loaded (or built) before the first timed profile
+    records, unbounded = [], []
     for _ in range(poses):
         rotation, t = sample_pose(gauge, rng, trace=trace_depth_fast)
         corners_x = true_corners(gauge, rotation, t)[:, 0]
@@ -89,14 +107,20 @@ def family_trial(task: tuple) -> list[dict]:
             if gap:
                 points = with_gap(points, corners_x, gap, rng)
             start = time.perf_counter()
-            estimate = estimate_pose(points, gauge, **options)
+            estimate = estimate_pose(points, gauge, options)
             elapsed = time.perf_counter() - start
             record = {"condition": condition, "ok": estimate.ok, "reason": estimate.reason, "time": elapsed}
+            if bound and not estimate.ok:
+                unbounded.append((record, points, rotation, t, noise))
             if estimate.ok:
                 position, rotation_error = pose_error(estimate.R, estimate.t, rotation, t)
                 record.update(position=position, rotation=rotation_error, nees=pose_nees(estimate, rotation, t),
                               sigma=float(np.sqrt(np.linalg.eigvalsh(estimate.covariance[:3, :3]).max())))
             records.append(record)
+    # after every timed estimate: the bound's linear algebra wakes BLAS threads that would share the core
+    for record, points, rotation, t, noise in unbounded:
+        crlb = dense_crlb_of_points(gauge, points, rotation, t, noise)
+        record.update(crlb_sigma=position_sigma(crlb[:3, :3]), wrong_if_published=wrong_if_published(crlb))
     return records
 
 
@@ -105,8 +129,10 @@ def reason_kind(reason: str) -> str:
     return re.sub(r"-?\d+(\.\d+)?", "#", reason)
 
 
-def cell(records: list[dict]) -> dict:
+def cell(records: list[dict], gate: float) -> dict:
+    """One cell's figures; gate: the estimator's max_position_sigma (m), for the --bound readout."""
     accepted = [r for r in records if r["ok"]]
+    bounded = [r for r in records if "crlb_sigma" in r]
     wrong = [r for r in accepted if r["position"] > WRONG_POSITION or r["rotation"] > WRONG_ROTATION]
     overconfident = [r for r in accepted if r["nees"] > NEES_999 and r["position"] > OVERCONFIDENT_POSITION]
     reasons = Counter(reason_kind(r["reason"]) for r in records if not r["ok"])
@@ -120,7 +146,9 @@ def cell(records: list[dict]) -> dict:
             "nees_beyond_999_pct": 100.0 * float((nees > NEES_999).mean()) if nees.size else float("nan"),
             "time_ms": summary(1e3 * np.array([r["time"] for r in records])),
             "top_refusal": reasons.most_common(1)[0][0] if reasons else "",
-            "refusals": dict(reasons.most_common(5))}
+            "refusals": dict(reasons.most_common(5)),
+            **({"refused_beyond_bound_pct": 100.0 * sum(r["crlb_sigma"] > gate for r in bounded) / len(records),
+                "wrong_if_refused_published": sum(r["wrong_if_published"] for r in bounded)} if bounded else {})}
 
 
 def _option(item: str) -> tuple[str, object]:
@@ -149,6 +177,10 @@ def main(argv=None) -> int:
     parser.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                         help="estimator options (pose_estimator's parameter names), e.g. spike_threshold=0 "
                              "max_residual_ratio=inf for the estimator without its spike filter and consistency test")
+    parser.add_argument("--bound", action="store_true",
+                        help="for every refused profile, the dense Cramer-Rao bound at the truth: how many refusals "
+                             "no estimator could have passed the gate with, and the wrong poses publishing them "
+                             "would cost an estimator at the bound")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--out", default="runs")
@@ -158,25 +190,33 @@ def main(argv=None) -> int:
     tasks = []
     for f, family in enumerate(args.families):
         if family.startswith("random n="):
-            tasks += [(family, k, args.seed + 101 * f, poses, options) for k in range(gauges)]
+            tasks += [(family, k, args.seed + 101 * f, poses, options, args.bound) for k in range(gauges)]
         else:  # one shipped gauge, as many poses as a random family has
-            tasks += [(family, 0, args.seed + 101 * f + k, poses, options) for k in range(gauges)]
+            tasks += [(family, 0, args.seed + 101 * f + k, poses, options, args.bound) for k in range(gauges)]
     from tqdm import tqdm
 
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+    context = None
+    if args.bound:  # the bound's matrix products would wake BLAS threads that spin on the cores being timed
+        os.environ.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+        context = multiprocessing.get_context("spawn")  # workers that import numpy under those settings
+    with ProcessPoolExecutor(max_workers=args.workers, mp_context=context) as pool:
         results = list(tqdm(pool.map(family_trial, tasks), total=len(tasks), desc="gauges", file=sys.stderr))
     by_cell: dict[tuple[str, str], list[dict]] = {}
     for task, records in zip(tasks, results):
         for record in records:
             by_cell.setdefault((task[0], record["condition"]), []).append(record)
-    cells = {f"{family} | {condition}": cell(records) for (family, condition), records in by_cell.items()}
+    gate = EstimatorOptions().with_changes(**options).max_position_sigma
+    cells = {f"{family} | {condition}": cell(records, gate) for (family, condition), records in by_cell.items()}
     rows = [[name.split(" | ")[0].replace(".yaml", ""), name.split(" | ")[1], str(c["profiles"]),
              f"{c['refused_pct']:.1f}", f"{c['wrong_pct']:.2f}", f"{c['overconfident_pct']:.1f}",
              f"{c['nees_mean']:.1f}", f"{c['nees_beyond_99_pct']:.1f}", f"{c['time_ms']['median']:.3f}",
              f"{c['time_ms']['p99']:.2f}",
+             *([f"{c.get('refused_beyond_bound_pct', 0.0):.1f}", f"{c.get('wrong_if_refused_published', 0.0):.1f}"]
+               if args.bound else []),
              c["top_refusal"][:70]] for name, c in cells.items()]
+    bound_headers = ["refused beyond bound %", "wrong if published"] if args.bound else []
     print(table(["gauge", "condition", "profiles", "refused %", "wrong %", "overconf. %", "NEES", "NEES>16.8 %",
-                 "ms p50", "ms p99", "most common refusal"], rows,
+                 "ms p50", "ms p99", *bound_headers, "most common refusal"], rows,
                 title=f"The estimator on unclean profiles ({args.refine_model} refinement; wrong = more than "
                       f"{WRONG_POSITION * 1e3:g} mm or {WRONG_ROTATION * 1e3:g} mrad off; overconfident = NEES "
                       f"beyond {NEES_999} and > {OVERCONFIDENT_POSITION * 1e3:g} mm off)"))

@@ -104,6 +104,13 @@ def dense_crlb(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, nois
     """
 
     points = render_profile(gauge, rotation, translation, profiler=profiler, trace=trace)
+    return dense_crlb_of_points(gauge, points, rotation, translation, noise_std)
+
+
+def dense_crlb_of_points(gauge: Gauge, points: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                         noise_std: float) -> np.ndarray:
+    """The dense bound for the points a profile actually has (NaN rows: none there, as in a gap): how well
+    any estimator could place a view some of whose points are missing."""
     points = points[np.isfinite(points).all(axis=1)]
     index, face = select_points(gauge, points, rotation, translation, ridge_margin=1e-6)
     _, g = depth_model(gauge, points[index, 0], face, rotation, translation)
