@@ -26,6 +26,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 MODULE = "profile_pose_estimator_aot"
+JIT_CACHE = ".numba"  # inside a build's scratch directory: the JIT cache its compilation starts empty
 SOURCES = ("compiled/estimate_kernel.py", "compiled/search_kernel.py", "compiled/pipeline_kernel.py",
            "compiled/codes.py", "compiled/dense_kernel.py", "compiled/decode_kernel.py", "compiled/kernel.py",
            "model/sym3.py")
@@ -110,8 +111,13 @@ def ensure_built(timeout: float = 900.0) -> Path | None:
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         scratch = Path(tempfile.mkdtemp(prefix=target.name + ".", dir=target.parent))
+        # numba's JIT cache of a kernel is keyed on its own file only: one that calls a kernel of another file
+        # (pipeline_kernel -> dense_kernel) would be built from its stale cache after that file changed. The
+        # build compiles every kernel afresh, with a cache of its own.
+        fresh = {**os.environ, "NUMBA_CACHE_DIR": str(scratch / JIT_CACHE)}
         done = subprocess.run([sys.executable, "-m", "profile_pose_ros.core.compiled.aot", "build", str(scratch)],
-                              capture_output=True, text=True, timeout=timeout)
+                              capture_output=True, text=True, timeout=timeout, env=fresh)
+        shutil.rmtree(scratch / JIT_CACHE, ignore_errors=True)
         if done.returncode == 0 and _module_file(scratch) is not None:
             try:
                 scratch.rename(target)  # atomic; a concurrent builder may have won, which is fine

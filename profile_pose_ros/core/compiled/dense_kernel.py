@@ -13,18 +13,14 @@ import math
 import numpy as np
 
 from .codes import JIT, OK, SINGULAR
-from .estimate_kernel import _cholesky, _cholesky_solve, _matmul3, _so3_exp, _spd_inverse
+from .estimate_kernel import (CURVED_ABOVE, _add_curvature_term, _cholesky, _cholesky_solve, _matmul3, _so3_exp,
+                              _spd_inverse, _weakest_direction)
 from .kernel import kernel
 
 STEP_TOLERANCE = 1e-13  # stop once no step component exceeds it (m, rad): converged to rounding
 # or once a step lowers chi-square by less than this: it moved the pose by a hundred-thousandth of its own
 # standard deviation (Mahalanobis), and Gauss-Newton's next step would be smaller still
 STEP_CHI2 = 1e-10
-# m^2: a pose whose translation variance (trace) exceeds this gets the valley's curvature in its covariance
-# (_add_valley_curvature); below it the term is far inside the linear one, not worth its three point passes
-CURVED_ABOVE = 1e-8
-POWER_STEPS = 60  # power iterations for the weakest direction: its variance leads the next by 5-100x here
-
 # columns of the per-face depth model (_face_models)
 A, INV_B, C, ALPHA, TX, TY, TZ = range(7)
 
@@ -203,29 +199,6 @@ def _linearise(pts, normals, offsets, ridge_q, ridge_u, width, length, rot, t, m
 
 
 @kernel(**JIT)
-def _weakest_direction(cov, v):
-    """v = the unit eigenvector of cov's largest eigenvalue (power iteration); returns that eigenvalue."""
-    w = np.empty(6)
-    for a in range(6):
-        v[a] = 1.0 / math.sqrt(6.0)
-    value = 0.0
-    for _ in range(POWER_STEPS):
-        for a in range(6):
-            w[a] = 0.0
-            for b in range(6):
-                w[a] += cov[a, b] * v[b]
-        value = 0.0
-        for a in range(6):
-            value += w[a] * w[a]
-        value = math.sqrt(value)
-        if value == 0.0:
-            return 0.0
-        for a in range(6):
-            v[a] = w[a] / value
-    return value
-
-
-@kernel(**JIT)
 def _depths(points, face_of, model, out):
     """The depth each kept point's face predicts under `model` (_face_models)."""
     for i in range(points.shape[0]):
@@ -236,50 +209,31 @@ def _depths(points, face_of, model, out):
 
 @kernel(**JIT)
 def _add_valley_curvature(pts, normals, offsets, rot, t, face_of, model, sums, cov):
-    """cov += the spread the curvature of the weak mode's valley adds, to second order.
-
-    Where a pose is poorly determined its error e along the weakest direction v (variance s^2) is large, and
-    the minimum of the cost for that e lies off the straight line e v by b(e) = -c e^2 with
-    c = 1/2 H^-1 J^T p'' (p'' the predicted depths' second derivative along v, H = J^T J): the linearised
-    covariance sees e v but not b, which lands in directions it calls tight. The second moment of b over
-    e ~ N(0, s^2) is 3 s^4 c c^T (the part of c along v is left out: the linear term owns v)."""
-    v, low, c, gradient = np.empty(6), np.empty((6, 6)), np.empty(6), np.empty(6)
-    hessian, turn, moved = np.empty((6, 6)), np.empty((3, 3)), np.empty((3, 3))
+    """_add_curvature_term (estimate_kernel) for the dense pose: p'' from the predicted depths at +-s v, each
+    point on the face it is on now."""
+    v = np.empty(6)
     variance = _weakest_direction(cov, v)
     s = math.sqrt(variance)
     n = pts.shape[0]
-    depth0, second, plus = np.empty(n), np.empty(n), np.empty(n)
+    depth0, moved_depth, second = np.empty(n), np.empty(n), np.zeros(n)
     _face_models(normals, offsets, rot, t, model)
     _depths(pts, face_of, model, depth0)
-    shifted = np.empty(3)
-    second[:] = 0.0
-    step = np.empty(3)
-    for sign in (1.0, -1.0):  # p'' = (p(+s v) + p(-s v) - 2 p) / s^2, each point on the face it is on now
+    step, turn, moved, shifted = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
+    for sign in (1.0, -1.0):
         for a in range(3):
             step[a] = sign * s * v[a]
             shifted[a] = t[a] + sign * s * v[3 + a]
         _so3_exp(step, turn)
         _matmul3(rot, turn, moved)
         _face_models(normals, offsets, moved, shifted, model)
-        _depths(pts, face_of, model, plus)
+        _depths(pts, face_of, model, moved_depth)
         for i in range(n):
             if face_of[i] >= 0:
-                second[i] += (plus[i] - depth0[i]) / variance
+                second[i] += (moved_depth[i] - depth0[i]) / variance
+    hessian, curved = np.empty((6, 6)), np.empty(6)
     _face_models(normals, offsets, rot, t, model)
-    _normal_equations(pts, face_of, second, model, sums, hessian, gradient)
-    if not _cholesky(hessian, low):
-        return
-    _cholesky_solve(low, gradient, c)
-    hv, hc = 0.0, 0.0
-    for a in range(6):
-        for b in range(6):
-            hv += v[a] * hessian[a, b] * v[b]
-            hc += v[a] * hessian[a, b] * c[b]
-    for a in range(6):
-        c[a] = 0.5 * (c[a] - hc / hv * v[a])
-    for a in range(6):
-        for b in range(6):
-            cov[a, b] += 3.0 * variance * variance * c[a] * c[b]
+    _normal_equations(pts, face_of, second, model, sums, hessian, curved)
+    _add_curvature_term(cov, hessian, curved, v, variance)
 
 
 @kernel(**JIT)

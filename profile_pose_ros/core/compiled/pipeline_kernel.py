@@ -17,8 +17,8 @@ from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, DENSE_ALWAYS,
                     O_DENSESIG, O_DFLOOR, O_DITER, O_DMARGIN, O_DTHR, O_MARGIN, O_MAXIT, O_MAXRATIO, O_MAXREPROJ,
                     O_NOISE, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT, REPROJECTION)
 from .dense_kernel import refine_dense
-from .estimate_kernel import (_cholesky, _closed_form, _detect, _quadratic, _refine, _residuals, _spd_inverse,
-                              _unstack_residuals)
+from .estimate_kernel import (CURVED_ABOVE, _add_corner_valley_curvature, _cholesky, _closed_form, _detect, _quadratic,
+                              _refine, _residuals, _spd_inverse, _unstack_residuals)
 from .kernel import kernel
 from .search_kernel import _cost, four_ridge_starts, search_minima
 
@@ -287,6 +287,8 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
         err = dense_err
     elif refined and not _position_sigma(cov[3:, 3:]) <= opt[O_SEARCHSIG]:
         _unscented_covariance(q, u, w, corners, rot, t, corner_cov, weighted, max_it, cov)
+    elif refined and weighted and cov[3, 3] + cov[4, 4] + cov[5, 5] > CURVED_ABOVE:
+        _add_corner_valley_curvature(q, u, w, corners, rot, t, corner_cov, cov)
     rot_out[:, :] = rot
     t_out[:] = t
     # [delta_F, t] -> ROS [t, delta_G = R delta_F]: cov_ros = T cov T^T, T = [[0, I], [R, 0]]

@@ -41,7 +41,7 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
         # without that face, but the profile's points still lie on the real gauge: the dense refinement fits
         # them to all its faces (with the reduced gauge it cut the points of a face narrowly in view after all
         # and settled far off: docs/estimator.md)
-        return estimate_past_a_hidden_face(points, gauge, options,
+        return estimate_past_a_hidden_face(points, gauge, options.for_a_partial_view,
                                            partial(_estimate_every_stage, surface=gauge)) or estimate
     return estimate
 
