@@ -13,8 +13,8 @@ import math
 import numpy as np
 
 from .codes import JIT, OK, SINGULAR
-from .estimate_kernel import (CURVED_ABOVE, _add_curvature_term, _cholesky, _cholesky_solve, _matmul3, _so3_exp,
-                              _spd_inverse, _weakest_direction)
+from .estimate_kernel import (CURVED_ABOVE, _add_curvature_term, _cholesky, _cholesky_solve, _matmul3, _moved_pose,
+                              _so3_exp, _spd_inverse, _weakest_direction)
 from .kernel import kernel
 
 STEP_TOLERANCE = 1e-13  # stop once no step component exceeds it (m, rad): converged to rounding
@@ -218,13 +218,9 @@ def _add_valley_curvature(pts, normals, offsets, rot, t, face_of, model, sums, c
     depth0, moved_depth, second = np.empty(n), np.empty(n), np.zeros(n)
     _face_models(normals, offsets, rot, t, model)
     _depths(pts, face_of, model, depth0)
-    step, turn, moved, shifted = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
+    moved, shifted = np.empty((3, 3)), np.empty(3)
     for sign in (1.0, -1.0):
-        for a in range(3):
-            step[a] = sign * s * v[a]
-            shifted[a] = t[a] + sign * s * v[3 + a]
-        _so3_exp(step, turn)
-        _matmul3(rot, turn, moved)
+        _moved_pose(rot, t, v, sign * s, moved, shifted)
         _face_models(normals, offsets, moved, shifted, model)
         _depths(pts, face_of, model, moved_depth)
         for i in range(n):

@@ -916,6 +916,17 @@ def _weakest_direction(cov, v):
 
 
 @kernel(**JIT)
+def _moved_pose(rot, t, v, distance, moved, shifted):
+    """(moved, shifted) = the pose (rot, t) moved `distance` along v = [delta_F, t] (the refinement's step)."""
+    step, turn = np.empty(3), np.empty((3, 3))
+    for a in range(3):
+        step[a] = distance * v[a]
+        shifted[a] = t[a] + distance * v[3 + a]
+    _so3_exp(step, turn)
+    _matmul3(rot, turn, moved)
+
+
+@kernel(**JIT)
 def _add_curvature_term(cov, hessian, curved, v, variance):
     """cov += the spread the curvature of the weak mode's valley adds (a least-squares pose, either model).
 
@@ -952,13 +963,9 @@ def _add_corner_valley_curvature(q, u, w, corners, rot, t, corner_cov, cov):
     s = math.sqrt(variance)
     r0, moved_r, second = np.empty(n2), np.empty(n2), np.zeros(n2)
     _residuals(q, u, w, corners, rot, t, r0)
-    step, turn, moved, shifted = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
+    moved, shifted = np.empty((3, 3)), np.empty(3)
     for sign in (1.0, -1.0):
-        for a in range(3):
-            step[a] = sign * s * v[a]
-            shifted[a] = t[a] + sign * s * v[3 + a]
-        _so3_exp(step, turn)
-        _matmul3(rot, turn, moved)
+        _moved_pose(rot, t, v, sign * s, moved, shifted)
         _residuals(q, u, w, corners, moved, shifted, moved_r)
         for i in range(n2):
             second[i] += (moved_r[i] - r0[i]) / variance
