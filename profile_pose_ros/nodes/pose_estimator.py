@@ -66,8 +66,8 @@ PARAMETERS = [
           "corners: refine on the corners (paper eq. 15). dense: also fit every point's depth to its face (ML for "
           "depth noise, lower position error on the shipped gauges, about twice the time). auto: corners, and "
           "dense where the corner pose's position std exceeds dense_above_sigma (the views whose corners determine "
-          "them poorly: there the corner model refuses or errs, the dense one keeps and is right; "
-          "docs/estimator.md)."),
+          "them poorly: there the corner model refuses or errs, the dense one keeps and is right) and on every "
+          "view with a face hidden or out of view (docs/estimator.md)."),
     Param("dense_above_sigma", 2e-4, "refine_model auto: the dense refinement follows a corner pose whose "
           "position's largest standard deviation exceeds this (m); the shipped gauges at 5 um noise are below "
           "it.", 0.0, 1.0),
