@@ -21,6 +21,7 @@ import numpy as np
 
 from ..core import EstimatorOptions, Gauge, estimate_pose, render_profile, sample_pose
 from ..core.compiled import estimate_kernel
+from ..core.compiled.codes import REWEIGHT_ROUNDS
 from ..core.estimation.estimator import warm_up
 from ..resources import DEFAULT_GAUGE, config_path
 from .numpy_baseline import estimate_baseline
@@ -54,11 +55,11 @@ def time_ours(gauge: Gauge, profiles: list[np.ndarray], options: EstimatorOption
         solved = time.perf_counter()
         if not stages["CD"]:
             estimate_kernel._refine(gauge.q, gauge.u, gauge.w, corners, rotation, translation, jac @ np.diag(line_var) @ jac.T,
-                         True, options.max_iterations, True, np.empty((6, 6)))
+                         True, options.max_iterations, True, np.empty((6, 6)), REWEIGHT_ROUNDS)
         corner_cov = jac @ np.diag(line_var) @ jac.T
         begun = time.perf_counter()
         estimate_kernel._refine(gauge.q, gauge.u, gauge.w, corners, rotation, translation, corner_cov, True,
-                     options.max_iterations, True, np.empty((6, 6)))
+                     options.max_iterations, True, np.empty((6, 6)), REWEIGHT_ROUNDS)
         refined = time.perf_counter()
         stages["CD"].append(detected - start)
         stages["PC closed form"].append(solved - detected)

@@ -46,3 +46,7 @@ JIT = dict(cache=True, error_model="numpy", nogil=True)  # numba.njit options of
 POLISH_STEPS = 4
 POLISH_COST_TOLERANCE = 1e-9
 POLISH_STEP_TOLERANCE = 1e-12  # m or rad: the next Gauss-Newton step would be far below this
+# the weights formed again at the minimum (estimate_kernel._refine) until a step under them would move the pose
+# by less than this (chi-square: a tenth of its standard deviation), at most this many times in all
+REWEIGHT_CHI2 = 1e-2
+REWEIGHT_ROUNDS = 10

@@ -13,8 +13,8 @@ import numpy as np
 
 from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, JIT, O_EPS, O_FLOOR, O_GAP,
                     O_MAXFACE, O_MAXOFF, O_MINANGLE, O_MINSEG, O_NOISE, O_PASSES, O_ROBUST, O_SIGFLOOR, O_SPIKE, O_THR,
-                    O_TRIM, OK, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS, SINGULAR, STEEP_SEGMENT,
-                    TOO_FEW_POINTS, WRONG_CORNER_COUNT, X_NOT_INCREASING)
+                    O_TRIM, OK, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS, REWEIGHT_CHI2,
+                    REWEIGHT_ROUNDS, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS, WRONG_CORNER_COUNT, X_NOT_INCREASING)
 from .kernel import kernel
 
 # ----------------------------------------------------------------------------- corner detection
@@ -771,24 +771,28 @@ def _closed_form(q, u, w, corners, info):
 
 
 @kernel(**JIT)
-def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, cov_out):
-    """Levenberg-Marquardt + Gauss-Newton polish (unless polish is False) on SO(3) x R^3 (see solver.refine).
+def _weighted_step_chi2(u, w, corners, rot, r, weight):
+    """How far (chi-square, step^T H step) one Gauss-Newton step under these weights would move the pose."""
+    n2 = r.shape[0]
+    jac, jw, hessian, gradient = np.empty((n2, 6)), np.empty((6, n2)), np.empty((6, 6)), np.empty(6)
+    low, step = np.empty((6, 6)), np.empty(6)
+    _jacobian(u, w, corners, rot, jac)
+    _normal_equations(jac, weight, r, jw, hessian, gradient)
+    if not _cholesky(hessian, low):
+        return np.inf
+    _cholesky_solve(low, gradient, step)
+    chi2 = 0.0
+    for a in range(6):
+        chi2 += step[a] * gradient[a]
+    return chi2
 
-    Returns (status, R, t, residuals, iterations, chi2); cov_out gets the (6, 6) covariance over [delta_F, t] (none
-    if cov_out is (0, 0)), chi2 is the residuals' squared Mahalanobis length under the covariance the corners
-    induce (inf if that is singular).
-    """
+
+@kernel(**JIT)
+def _descend(q, u, w, corners, rot, t, r, weight, max_iterations, polish):
+    """Levenberg-Marquardt, then undamped Gauss-Newton steps (unless polish is False), on the cost r^T W r with
+    the weights fixed; rot, t and r are updated in place. Returns (status, iterations)."""
     n2 = 2 * corners.shape[0]
-    rot = rot.copy()  # the current pose, updated in place: the loop allocates nothing
-    t = t.copy()
-    r = np.empty(n2)
     new_r = np.empty(n2)
-    _residuals(q, u, w, corners, rot, t, r)
-    sigma_r = np.empty((n2, n2))
-    weight = np.eye(n2)
-    _residual_covariance(u, w, rot, corner_cov, sigma_r)
-    if weighted and not _spd_inverse(sigma_r, weight):
-        return SINGULAR, rot, t, r, 0, np.inf
     cost = _quadratic(r, weight)
     damping = 1e-6
     iterations = 0
@@ -816,7 +820,7 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
             for k in range(6):
                 damped[k, k] += damping * hessian[k, k]
         if not _cholesky(damped, low):
-            return SINGULAR, rot, t, r, iterations, np.inf
+            return SINGULAR, iterations
         for k in range(6):
             gradient[k] = -gradient[k]
         _cholesky_solve(low, gradient, step)
@@ -853,9 +857,51 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
             damping *= 10.0
             if damping > 1e8 or new_cost - cost <= POLISH_COST_TOLERANCE * cost:
                 it = max_iterations
-    _residual_covariance(u, w, rot, corner_cov, sigma_r)
+    return OK, iterations
+
+
+@kernel(**JIT)
+def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, cov_out, rounds):
+    """Levenberg-Marquardt + Gauss-Newton polish (unless polish is False) on SO(3) x R^3 (see solver.refine).
+
+    Returns (status, R, t, residuals, iterations, chi2); cov_out gets the (6, 6) covariance over [delta_F, t] (none
+    if cov_out is (0, 0)), chi2 is the residuals' squared Mahalanobis length under the covariance the corners
+    induce (inf if that is singular).
+
+    The weights (the inverse of the residuals' covariance, which turns with the pose) are formed at the start
+    and, up to `rounds` times in all, formed again at the minimum until they no longer move it: a start far
+    from the minimum (a virtual ridge of a hidden face that runs nearly along the laser plane) otherwise
+    leaves the minimum of a mis-weighted cost, off the maximum-likelihood pose by several of its standard
+    deviations in the direction the weights turned (docs/estimator.md). The basin search's and the unscented
+    transform's many refinements take one round: they start at or compare minima, and more rounds there
+    doubled a poorly determined profile's time.
+    """
+    n2 = 2 * corners.shape[0]
+    rot = rot.copy()  # the current pose, updated in place: the loop allocates nothing
+    t = t.copy()
+    r = np.empty(n2)
+    _residuals(q, u, w, corners, rot, t, r)
+    sigma_r = np.empty((n2, n2))
     information = np.empty((n2, n2))
-    invertible = _spd_inverse(sigma_r, information)
+    weight = np.eye(n2)
+    if weighted:
+        _residual_covariance(u, w, rot, corner_cov, sigma_r)
+        if not _spd_inverse(sigma_r, weight):
+            return SINGULAR, rot, t, r, 0, np.inf
+    iterations = 0
+    invertible = False
+    for round_ in range(rounds if weighted else 1):
+        status, done = _descend(q, u, w, corners, rot, t, r, weight, max_iterations, polish)
+        iterations += done
+        if status != OK:
+            return status, rot, t, r, iterations, np.inf
+        # the weights at this minimum, which the covariance below needs anyway: would they move it?
+        _residual_covariance(u, w, rot, corner_cov, sigma_r)
+        invertible = _spd_inverse(sigma_r, information)
+        if not (weighted and invertible) or round_ == rounds - 1 or \
+                _weighted_step_chi2(u, w, corners, rot, r, information) < REWEIGHT_CHI2:
+            break
+        weight[:, :] = information
     if weighted:
         if not invertible:
             return SINGULAR, rot, t, r, iterations, np.inf
@@ -863,6 +909,7 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
     chi2 = _quadratic(r, information) if invertible else np.inf
     if cov_out.shape[0] == 0:  # no covariance wanted (the basin search's triage): half the cost of a short run
         return OK, rot, t, r, iterations, chi2
+    jac, jw, hessian, gradient = np.empty((n2, 6)), np.empty((6, n2)), np.empty((6, 6)), np.empty(6)
     _jacobian(u, w, corners, rot, jac)
     _normal_equations(jac, weight, r, jw, hessian, gradient)
     bread = np.empty((6, 6))
@@ -1003,7 +1050,7 @@ def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, 
     """solver.refine() compiled, for the basin search and the four-ridge starts. Returns (status, iterations);
     the pose, the stacked residuals and the (6, 6) covariance over [delta_F, t] go to the *_out arrays."""
     status, rot2, t2, r2, iterations, _ = _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations,
-                                                  polish, cov_out)
+                                                  polish, cov_out, REWEIGHT_ROUNDS)
     rot_out[:, :] = rot2
     t_out[:] = t2
     r_out[:] = r2

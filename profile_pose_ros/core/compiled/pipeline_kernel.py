@@ -15,7 +15,8 @@ from ..model.sym3 import largest_eigenvalue
 from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, DENSE_ALWAYS, DENSE_STAGE,
                     DENSE_WHEN_POORLY_DETERMINED, INCONSISTENT, JIT, NO_CONVERGED, NO_START, NOT_FINITE, O_DENSE,
                     O_DENSESIG, O_DFLOOR, O_DITER, O_DMARGIN, O_DTHR, O_MARGIN, O_MAXIT, O_MAXRATIO, O_MAXREPROJ,
-                    O_NOISE, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT, REPROJECTION)
+                    O_NOISE, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT, REPROJECTION,
+                    REWEIGHT_ROUNDS)
 from .dense_kernel import refine_dense
 from .estimate_kernel import (CURVED_ABOVE, _add_corner_valley_curvature, _cholesky, _closed_form, _detect, _quadratic,
                               _refine, _residuals, _spd_inverse, _unstack_residuals)
@@ -138,7 +139,7 @@ def _unscented_covariance(q, u, w, corners, rot, t, corner_cov, weighted, max_it
                 moved[i, 0] = corners[i, 0] + sign * spread * low[2 * i, j]
                 moved[i, 1] = corners[i, 1] + sign * spread * low[2 * i + 1, j]
             status, rot2, t2, r2, its, chi2 = _refine(q, u, w, moved, rot, t, corner_cov, weighted, max_iterations,
-                                                      True, no_cov)  # converged: a short run spreads too little
+                                                      True, no_cov, 1)  # converged: a short run spreads too little
             if status != OK:
                 return
             _rotation_between(rot, rot2, d[:3])  # R2 = R exp([delta_F]x)
@@ -225,7 +226,7 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
     best = -1
     for k in range(count):
         status, rot2, t2, r2, iterations, chi2 = _refine(q, u, w, corners, start_rots[k], start_ts[k], corner_cov,
-                                                         weighted, max_it, True, covs[k])
+                                                         weighted, max_it, True, covs[k], REWEIGHT_ROUNDS)
         if status != OK:
             if count == 1:
                 return status, iterations, fit_rms, np.nan, cf_err, np.nan, 0

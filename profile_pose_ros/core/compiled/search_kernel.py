@@ -236,7 +236,7 @@ def search_minima(q, u, w, corners, corner_cov, weighted, max_iterations, rot, t
         tried += starts
         for k in range(starts):  # triage: a few steps from each start
             status, rot2, t2, r2, its, chi2 = _refine(q, u, w, corners, start_rots[k], start_ts[k], corner_cov,
-                                                       weighted, TRIAGE_ITERATIONS, False, no_cov)
+                                                       weighted, TRIAGE_ITERATIONS, False, no_cov, 1)
             short_rots[k] = rot2
             short_ts[k] = t2
             cost = chi2 if weighted else _quadratic(r2, np.eye(2 * n))
@@ -248,7 +248,7 @@ def search_minima(q, u, w, corners, corner_cov, weighted, max_iterations, rot, t
                 break
             costs[k] = np.inf
             status, rot2, t2, r2, its, chi2 = _refine(q, u, w, corners, short_rots[k], short_ts[k], corner_cov,
-                                                       weighted, max_iterations, True, full_cov)
+                                                       weighted, max_iterations, True, full_cov, 1)
             if status != OK:
                 continue
             cost = chi2 if weighted else _quadratic(r2, np.eye(2 * n))
