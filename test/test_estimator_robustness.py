@@ -129,6 +129,27 @@ def test_an_end_face_out_of_view_is_found_at_its_end(gauge, rng, end):
         assert position < 1e-3 and rotation_error < 5e-3
 
 
+def test_a_wrong_placement_of_the_faces_seen_is_refused_without_reweighting_its_fit(gauge, rng):
+    """The paper gauge with its right end face out of view, fitted as if the faces seen were the other run of
+    five: residuals thousands of times the noise. Forming the weights again at that minimum cannot make it
+    consistent, so the fit stops after one round (a round is at most max_iterations + polish steps; ten
+    rounds made this refusal most of a gap profile's time)."""
+    from profile_pose_ros.core.compiled.codes import POLISH_STEPS
+    from profile_pose_ros.core.estimation.result import EstimatorOptions
+
+    n = gauge.n_ridges
+    options = EstimatorOptions(basin_search=False)
+    for _ in range(4):
+        rotation, t = sample_pose(gauge, rng)
+        points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+        points = hidden(points, true_corners(gauge, rotation, t)[-1, 0] - 1e-3, np.inf)
+        right = estimate_pose(points, gauge.faces_in_view(0, n - 1), options)
+        wrong = estimate_pose(points, gauge.faces_in_view(1, n), options)
+        assert right.ok, right.reason
+        assert not wrong.ok and "noise explains" in wrong.reason
+        assert 0 < wrong.iterations <= options.max_iterations + POLISH_STEPS, wrong.iterations
+
+
 @pytest.mark.parametrize("refine_model", ["corners", "dense"])
 def test_two_faces_beyond_the_view_leave_the_run_of_faces_seen(rng, refine_model):
     """The designed gauge near the edge of the view: the end face and all but a millimetre of the next are

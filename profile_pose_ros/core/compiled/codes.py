@@ -50,3 +50,8 @@ POLISH_STEP_TOLERANCE = 1e-12  # m or rad: the next Gauss-Newton step would be f
 # by less than this (chi-square: a tenth of its standard deviation), at most this many times in all
 REWEIGHT_CHI2 = 1e-2
 REWEIGHT_ROUNDS = 10
+# ... but not at a minimum whose residuals are over a hundred times what the corners' noise explains (chi-square
+# per residual): a wrong placement of a partial view, or the wrong gauge. Weights turning by a fraction of a
+# standard deviation cannot make such a fit consistent; the checks refuse it at any max_residual_ratio below
+# 100 (above, it is kept as weighted so far). Its further rounds were most of a gap profile's slow tail
+REWEIGHT_HOPELESS_CHI2 = 1e4

@@ -14,7 +14,8 @@ import numpy as np
 from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, JIT, O_EPS, O_FLOOR, O_GAP,
                     O_MAXFACE, O_MAXOFF, O_MINANGLE, O_MINSEG, O_NOISE, O_PASSES, O_ROBUST, O_SIGFLOOR, O_SPIKE, O_THR,
                     O_TRIM, OK, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS, REWEIGHT_CHI2,
-                    REWEIGHT_ROUNDS, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS, WRONG_CORNER_COUNT, X_NOT_INCREASING)
+                    REWEIGHT_HOPELESS_CHI2, REWEIGHT_ROUNDS, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS,
+                    WRONG_CORNER_COUNT, X_NOT_INCREASING)
 from .kernel import kernel
 
 # ----------------------------------------------------------------------------- corner detection
@@ -899,6 +900,7 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
         _residual_covariance(u, w, rot, corner_cov, sigma_r)
         invertible = _spd_inverse(sigma_r, information)
         if not (weighted and invertible) or round_ == rounds - 1 or \
+                _quadratic(r, information) > REWEIGHT_HOPELESS_CHI2 * n2 or \
                 _weighted_step_chi2(u, w, corners, rot, r, information) < REWEIGHT_CHI2:
             break
         weight[:, :] = information
