@@ -891,6 +891,7 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
             return SINGULAR, rot, t, r, 0, np.inf
     iterations = 0
     invertible = False
+    chi2 = np.inf
     for round_ in range(rounds if weighted else 1):
         status, done = _descend(q, u, w, corners, rot, t, r, weight, max_iterations, polish)
         iterations += done
@@ -899,8 +900,8 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
         # the weights at this minimum, which the covariance below needs anyway: would they move it?
         _residual_covariance(u, w, rot, corner_cov, sigma_r)
         invertible = _spd_inverse(sigma_r, information)
-        if not (weighted and invertible) or round_ == rounds - 1 or \
-                _quadratic(r, information) > REWEIGHT_HOPELESS_CHI2 * n2 or \
+        chi2 = _quadratic(r, information) if invertible else np.inf
+        if not (weighted and invertible) or round_ == rounds - 1 or chi2 > REWEIGHT_HOPELESS_CHI2 * n2 or \
                 _weighted_step_chi2(u, w, corners, rot, r, information) < REWEIGHT_CHI2:
             break
         weight[:, :] = information
@@ -908,7 +909,6 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
         if not invertible:
             return SINGULAR, rot, t, r, iterations, np.inf
         weight = information
-    chi2 = _quadratic(r, information) if invertible else np.inf
     if cov_out.shape[0] == 0:  # no covariance wanted (the basin search's triage): half the cost of a short run
         return OK, rot, t, r, iterations, chi2
     jac, jw, hessian, gradient = np.empty((n2, 6)), np.empty((6, n2)), np.empty((6, 6)), np.empty(6)
