@@ -81,6 +81,46 @@ def test_the_radix_median_is_numpys_median():
     assert _median(np.array([1.0, 2.0]), 2, hist, pool) == 1.5  # the two middle values in adjacent binades
 
 
+def test_each_point_is_classified_as_testing_every_ridge_would():
+    """dense_kernel._classify walks from the previous point's face and measures the clearance to that face's
+    two ridges only: the same faces, the same cut and the same residuals as testing every ridge, on gauges of
+    4 to 10 ridges, in poses that put points off the footprint and on the ridges' margins."""
+    from profile_pose_ros.core.compiled.dense_kernel import _classify, _face_models
+    from profile_pose_ros.core.design.gauge_design import random_gauge
+    from profile_pose_ros.core.estimation.dense import DenseOptions
+
+    rng = np.random.default_rng(5)
+    options = DenseOptions()
+    for n in (4, 5, 7, 10):
+        gauge = random_gauge(n, rng)
+        normals, offsets, ridge_q, ridge_u = gauge.kernel_faces
+        for _ in range(10):
+            rotation, t = sample_pose(gauge, rng)
+            points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng, spike_fraction=0.02)
+            points = np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
+            model = np.empty((n + 1, 7))
+            _face_models(normals, offsets, rotation, t, model)
+            count = len(points)
+            face_of, residual, spread = np.empty(count, np.int64), np.empty(count), np.empty(count)
+            kept = _classify(points, ridge_q, ridge_u, gauge.width, gauge.length, rotation, t, options.ridge_margin,
+                             options.outlier_threshold, options.min_outlier_floor, model, face_of, residual, spread,
+                             np.empty(2048, np.int64), np.empty(count, np.int64))
+            mapped = t[:2] + points[:, :1] * rotation[:2, 0] + points[:, 1:] * rotation[:2, 2]
+            ridges = ridge_q + ridge_u * mapped[:, 1:]
+            inside = (np.abs(mapped[:, 0]) < gauge.width / 2) & (np.abs(mapped[:, 1]) < gauge.length / 2)
+            clearance = np.minimum(np.abs(ridges - mapped[:, :1]).min(axis=1),
+                                   gauge.width / 2 - np.abs(mapped[:, 0]))
+            usable = inside & (clearance > options.ridge_margin)
+            faces = (ridges < mapped[:, :1]).sum(axis=1)
+            depth = (model[faces, 2] - points[:, 0] * model[faces, 0]) * model[faces, 1]
+            r = points[:, 1] - depth
+            limit = max(options.outlier_threshold * 1.4826 * np.median(np.abs(r[usable])), options.min_outlier_floor)
+            expected = np.where(usable & (np.abs(r) <= limit), faces, -1)
+            assert kept == (expected >= 0).sum()
+            assert np.array_equal(face_of, expected)
+            assert np.allclose(residual[expected >= 0], r[expected >= 0], rtol=0, atol=1e-15)
+
+
 def test_auto_is_the_corner_pose_where_the_corners_determine_it_and_the_dense_one_where_they_do_not():
     """refine_model auto: a corner pose with its position std under dense_above_sigma is published as the corner
     model's, to the bit (its speed); over it, as the dense model's (its robustness: docs/estimator.md)."""

@@ -91,14 +91,32 @@ def _median(values, count, hist, pool):
 
 
 @kernel(**JIT)
+def _ridges_ordered(ridge_q, ridge_u, half_l):
+    """Whether the ridges lie in increasing x all along the footprint (a validated gauge's do; a gauge made
+    without some faces may not): the x of a ridge is linear in y, so checking both ends is enough."""
+    for k in range(ridge_u.shape[0] - 1):
+        for y in (-half_l, half_l):
+            if not ridge_q[k] + ridge_u[k] * y < ridge_q[k + 1] + ridge_u[k + 1] * y:
+                return False
+    return True
+
+
+@kernel(**JIT)
 def _classify(points, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor, model, face_of, residual,
               spread, hist, pool):
     """Each point's face and depth residual, face_of -1 where the point is unusable (off the footprint, within
     `margin` of a ridge or an edge) or beyond the robust cut (threshold robust standard deviations, at least
-    `floor`); returns how many are kept. spread, hist and pool are scratch space for the median."""
+    `floor`); returns how many are kept. spread, hist and pool are scratch space for the median.
+
+    A point's face is the number of ridges left of it. With the ridges in order that is found by walking from
+    the previous point's face (the profile crosses the faces in turn, so the walk is a step or none), and the
+    nearest ridges are the face's two: the same face and clearance as testing every ridge, at a fixed cost
+    per point instead of one that grows with the ridges."""
     n_ridges = ridge_u.shape[0]
     half_w = width / 2
     half_l = length / 2
+    ordered = _ridges_ordered(ridge_q, ridge_u, half_l)
+    face = 0
     usable = 0
     for i in range(points.shape[0]):
         face_of[i] = -1
@@ -107,13 +125,23 @@ def _classify(points, ridge_q, ridge_u, width, length, rot, t, margin, threshold
         my = t[1] + x * rot[1, 0] + z * rot[1, 2]
         if not (abs(mx) < half_w and abs(my) < half_l):
             continue
-        face = 0
         clearance = min(abs(mx + half_w), abs(half_w - mx))
-        for k in range(n_ridges):
-            ridge = ridge_q[k] + ridge_u[k] * my
-            if ridge < mx:
+        if ordered:
+            while face < n_ridges and ridge_q[face] + ridge_u[face] * my < mx:
                 face += 1
-            clearance = min(clearance, abs(ridge - mx))
+            while face > 0 and not ridge_q[face - 1] + ridge_u[face - 1] * my < mx:
+                face -= 1
+            if face > 0:
+                clearance = min(clearance, abs(ridge_q[face - 1] + ridge_u[face - 1] * my - mx))
+            if face < n_ridges:
+                clearance = min(clearance, abs(ridge_q[face] + ridge_u[face] * my - mx))
+        else:
+            face = 0
+            for k in range(n_ridges):
+                ridge = ridge_q[k] + ridge_u[k] * my
+                if ridge < mx:
+                    face += 1
+                clearance = min(clearance, abs(ridge - mx))
         if not clearance > margin:
             continue
         r = z - (model[face, C] - x * model[face, A]) * model[face, INV_B]
