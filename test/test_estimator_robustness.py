@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from profile_pose_ros.core import estimate_pose, pose_error, render_profile, sample_pose, true_corners
 from profile_pose_ros.core.estimation.estimator import pose_nees
 from profile_pose_ros.core.compiled.estimate_kernel import _median5
-from profile_pose_ros.core.model.gauge import Gauge
+from profile_pose_ros.core.model.gauge import Gauge, GaugeError
 from profile_pose_ros.core.design.gauge_design import random_gauge
 
 finite = st.floats(-1e3, 1e3, allow_nan=False)
@@ -183,6 +183,21 @@ def test_a_gap_that_hides_no_face_is_not_explained_by_one(gauge, rng):
     points = hidden(points, corners[2] + 2e-3, corners[2] + 8e-3)  # a gap inside a face, away from any corner
     estimate = estimate_pose(points, gauge)
     assert not estimate.ok
+
+
+def test_a_gap_over_a_face_between_two_parallel_faces_is_refused_with_its_reason(gauge, rng):
+    """The paper gauge's faces 2 and 4 are parallel: hiding face 3 leaves no corner where they would meet.
+    The profile is refused, saying so, instead of raising out of the estimator (a node would log an internal
+    error for every such profile)."""
+    with pytest.raises(GaugeError):
+        gauge.without_face(3)
+    rotation, t = sample_pose(gauge, rng)
+    corners = true_corners(gauge, rotation, t)[:, 0]
+    points = hidden(render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), corners[2] - 3e-4,
+                    corners[3] + 3e-4)
+    estimate = estimate_pose(points, gauge)
+    assert not estimate.ok
+    assert "face 3 hidden by the gap" in estimate.reason and "faces 2 and 4 are parallel" in estimate.reason
 
 
 def moved_face(gauge: Gauge, face: int, by: float) -> Gauge:

@@ -17,7 +17,7 @@ from ..compiled import codes
 from ..compiled.loader import kernels
 from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
-from .hidden_face import estimate_past_a_hidden_face
+from .hidden_face import estimate_past_a_hidden_face, prepare_partial_views
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_ambiguous,
                      reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected)
 from .solver import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
@@ -131,7 +131,8 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
 
 
 def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
-    """Compile (or load from cache) every path before the first real profile; returns seconds taken."""
+    """Compile (or load from cache) every path, and make the gauges of partial views, before the first real
+    profile; returns seconds taken."""
     from ..model.poses import sample_pose
     from ..model.render import render_profile
 
@@ -141,6 +142,8 @@ def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
     profile = render_profile(gauge, rotation, translation)
     _estimate_in_one_call(profile, gauge, options)
     _estimate_in_one_call(np.full((10, 2), np.nan), gauge, options)  # a failure path too
+    if options.hidden_faces:
+        prepare_partial_views(gauge, options.for_a_partial_view)
     return time.perf_counter() - start
 
 

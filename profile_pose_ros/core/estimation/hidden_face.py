@@ -18,13 +18,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from functools import lru_cache
 from typing import Callable
 
 import numpy as np
 
-from ..model.gauge import Gauge
+from ..model.gauge import Gauge, GaugeError
 from ..model.render import true_corners
 from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
+from .corners import CornerResult
 from .stages import detect_corners
 
 # a run between two valid points wider than this many point pitches is a gap, not the profiler's spacing
@@ -59,11 +61,21 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     pitch = float(np.median(np.diff(x)))
     # a face that showed fewer points than a segment needs would not have been found either
     tolerance = options.corners.min_segment_points * pitch
+    gaps = profile_gaps(x, pitch)[:2]
+    relaxed = [_options_for_a_gap(options, before, after) for before, after in gaps]
+    # the faces a gap's detection finds do not depend on how many corners it was asked for (only whether that
+    # is the count found): once known, the hypotheses that count cannot meet need no detection of their own
+    faces_found: list[int | None] = [None] * len(gaps)
     for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
         if n - count < MIN_RIDGES:
             break
-        for before, after in profile_gaps(x, pitch)[:2]:
-            found = _with_faces_hidden_in_gap(points, gauge, options, estimate, before, after, tolerance, count)
+        for k, (before, after) in enumerate(gaps):
+            if faces_found[k] is not None and faces_found[k] != n + 1 - count:
+                continue
+            detection = detect_corners(points, n - count, relaxed[k].corners)
+            faces_found[k] = len(detection.lines) if detection.ok else detection.faces_found or None
+            found = _with_faces_hidden_in_gap(points, gauge, options, relaxed[k], detection, estimate, before, after,
+                                              tolerance, count)
             if found is not None:
                 return found
     # faces out of view at the ends (the gauge near the edge of the profiler's field, or a gap over the end of
@@ -76,10 +88,7 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
         return None
     seen = (detection.lines[0].x_min, detection.lines[-1].x_max)
     shown = len(detection.lines) - 1  # faces first..first + shown are in view
-    # no basin search: a placement whose corner pose the checks refuse is a wrong placement, whose corners fit
-    # no pose of that run (residuals thousands of times the noise), and searching around it cost most of a
-    # gap profile's slow tail without changing a decision (docs/estimator.md, Unclean profiles)
-    unsearched = options.with_changes(basin_search=False)  # once: each options object packs its kernel vector
+    unsearched = _without_search(options)
     runs = [_with_faces_out_of_view(points, gauge, unsearched, estimate, first, first + shown, seen, tolerance)
             for first in range(n - shown + 1)]
     accepted = [found for found in runs if found.ok]
@@ -91,17 +100,58 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     return None
 
 
-def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
-                              before: float, after: float, tolerance: float, count: int) -> PoseEstimate | None:
-    """The pose with `count` adjacent faces hidden by the gap (before, after), or None when the faces found
-    either side of it do not leave that many out."""
+def prepare_partial_views(gauge: Gauge, options: EstimatorOptions) -> int:
+    """Make, before the first profile, every reduced gauge and options object a partial view can ask for (each
+    made once per gauge and kept): a gauge costs a few hundred microseconds to build and validate, which the
+    first profile to need it would otherwise pay. Returns how many gauges."""
     n = gauge.n_ridges
-    # The virtual corner may lie far outside the footprint (faces nearly parallel): that check is made here,
-    # for the real corners only. Its residual may be large and still within its (extrapolated) covariance: the
-    # consistency test, which weighs it so, stands for the absolute reprojection bound.
-    relaxed = replace(options, footprint_margin=math.inf, max_reprojection_error=math.inf).with_changes(
-        virtual_corner_gap=0.5 * (before + after))
-    detection = detect_corners(points, n - count, relaxed.corners)
+    _without_search(options)
+    made = 0
+    for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
+        for face in range(1, n - count + 1) if n - count >= MIN_RIDGES else ():
+            made += _made(lambda: gauge.without_face(face, count))
+    for shown in range(MIN_RIDGES, n):
+        for first in range(n - shown + 1):
+            made += _made(lambda: gauge.faces_in_view(first, first + shown))
+    return made
+
+
+def _made(build: Callable[[], Gauge]) -> int:
+    try:
+        build()
+    except GaugeError:  # faces whose planes do not meet inside the gauge: the profile that asks is refused
+        return 0
+    return 1
+
+
+def _options_for_a_gap(options: EstimatorOptions, before: float, after: float) -> EstimatorOptions:
+    """options for the gauge without the faces the gap (before, after) hides. The virtual corner may lie far
+    outside the footprint (faces nearly parallel): that check is made for the real corners only
+    (_outside_footprint). Its residual may be large and still within its (extrapolated) covariance: the
+    consistency test, which weighs it so, stands for the absolute reprojection bound."""
+    return _unbounded(options).with_changes(virtual_corner_gap=0.5 * (before + after))
+
+
+@lru_cache(maxsize=8)
+def _unbounded(options: EstimatorOptions) -> EstimatorOptions:
+    return replace(options, footprint_margin=math.inf, max_reprojection_error=math.inf)
+
+
+@lru_cache(maxsize=8)
+def _without_search(options: EstimatorOptions) -> EstimatorOptions:
+    """options for a run of faces in view, without the basin search: a placement whose corner pose the checks
+    refuse is a wrong placement, whose corners fit no pose of that run (residuals thousands of times the
+    noise), and searching around it cost most of a gap profile's slow tail without changing a decision
+    (docs/estimator.md, Unclean profiles). Made once per options object, which packs its kernel vector once."""
+    return options.with_changes(basin_search=False)
+
+
+def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
+                              relaxed: EstimatorOptions, detection: CornerResult, estimate: Callable, before: float,
+                              after: float, tolerance: float, count: int) -> PoseEstimate | None:
+    """The pose with `count` adjacent faces hidden by the gap (before, after), or None when the faces found
+    either side of it (detection, with the relaxed options) do not leave that many out."""
+    n = gauge.n_ridges
     if not detection.ok:
         return None
     lines = detection.lines
@@ -111,7 +161,12 @@ def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: Estimat
     face = virtual + 1
     faces = f"face {face}" if count == 1 else f"faces {face}..{face + count - 1}"
     where = f"{faces} hidden by the gap at x {before * 1e3:.1f}..{after * 1e3:.1f} mm"
-    found = estimate(points, gauge.without_face(face, count), relaxed)
+    try:
+        without = gauge.without_face(face, count)
+    except GaugeError:  # the faces either side are parallel (a symmetric gauge): no virtual ridge, no corner
+        return PoseEstimate(False, f"corner detection: {where}, but faces {face - 1} and {face + count} are parallel: "
+                                   f"without a corner between them the faces seen do not determine the pose")
+    found = estimate(points, without, relaxed)
     if not found.ok:
         return replace(found, reason=f"{found.reason} (with {where})")
     hidden = true_corners(gauge, found.R, found.t)[face - 1:face + count, 0]  # the ridges bounding them
