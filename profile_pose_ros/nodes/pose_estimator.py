@@ -262,7 +262,8 @@ class PoseEstimatorNode(Node):
                 reason = self._estimate_and_publish(serialized)
             except Exception as exc:  # noqa: BLE001 - a malformed input must never take the node down
                 reason = f"internal error: {exc!r}"
-                self.get_logger().error(reason)
+                # a profile stream that trips it does so hundreds of times a second: the count is in diagnostics
+                self.get_logger().error(reason, throttle_duration_sec=1.0)
         if reason:
             self.last_error = reason
             self.get_logger().warn(f"profile rejected: {reason}", throttle_duration_sec=1.0)
