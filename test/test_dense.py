@@ -121,6 +121,46 @@ def test_each_point_is_classified_as_testing_every_ridge_would():
             assert np.allclose(residual[expected >= 0], r[expected >= 0], rtol=0, atol=1e-15)
 
 
+def test_the_valley_term_from_the_faces_sums_is_the_one_from_every_points_second_derivative():
+    """dense_kernel._add_valley_curvature takes J^T p'' from each face's sums (p'' is linear in x on a face):
+    the same term as differencing every kept point's predicted depth at +-s v and summing over the points."""
+    from profile_pose_ros.core.compiled.dense_kernel import (C, INV_B, A, _add_valley_curvature, _face_models,
+                                                             _normal_equations)
+    from profile_pose_ros.core.compiled.estimate_kernel import _add_curvature_term, _moved_pose, _weakest_direction
+    from profile_pose_ros.core.design.gauge_design import random_gauge
+
+    rng = np.random.default_rng(8)
+    for n in (4, 6, 9):
+        gauge = random_gauge(n, rng)
+        normals, offsets, _, _ = gauge.kernel_faces
+        rotation, t = sample_pose(gauge, rng)
+        points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+        points = np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
+        face_of = np.clip(np.searchsorted(np.sort(rng.uniform(points[0, 0], points[-1, 0], n)), points[:, 0]), 0, n)
+        face_of[rng.random(len(points)) < 0.1] = -1  # points cut
+        model, sums = np.empty((n + 1, 7)), np.empty((n + 1, 6))
+        _face_models(normals, offsets, rotation, t, model)
+        hessian, gradient = np.empty((6, 6)), np.empty(6)
+        _normal_equations(points, face_of, rng.normal(size=len(points)), model, sums, hessian, gradient)
+        cov = np.linalg.inv(hessian) * 1e-9  # a poorly determined pose's scale
+        expected = cov.copy()
+        v = np.empty(6)
+        variance = _weakest_direction(expected, v)
+        depth = lambda m: (m[face_of, C] - points[:, 0] * m[face_of, A]) * m[face_of, INV_B]  # noqa: E731
+        second = np.zeros(len(points))
+        moved, shifted, moved_model = np.empty((3, 3)), np.empty(3), np.empty((n + 1, 7))
+        for sign in (1.0, -1.0):
+            _moved_pose(rotation, t, v, sign * np.sqrt(variance), moved, shifted)
+            _face_models(normals, offsets, moved, shifted, moved_model)
+            second += (depth(moved_model) - depth(model)) / variance
+        curved = np.empty(6)
+        _normal_equations(points, face_of, second, model, np.empty_like(sums), hessian, curved)
+        _add_curvature_term(expected, hessian, curved, v, variance)
+        _add_valley_curvature(normals, offsets, rotation, t, sums, cov)
+        assert not np.allclose(expected, np.linalg.inv(hessian) * 1e-9, rtol=1e-6, atol=0)  # the term is there
+        assert np.allclose(cov, expected, rtol=1e-9, atol=0)
+
+
 def test_auto_is_the_corner_pose_where_the_corners_determine_it_and_the_dense_one_where_they_do_not():
     """refine_model auto: a corner pose with its position std under dense_above_sigma is published as the corner
     model's, to the bit (its speed); over it, as the dense model's (its robustness: docs/estimator.md)."""

@@ -167,7 +167,6 @@ def _normal_equations(points, face_of, residual, model, sums, hessian, gradient)
     """hessian = J^T J and gradient = J^T r over the kept points; returns sum r^2. Per face the Jacobian row
     is B [1, u] with u = x - x0 (x0: the face's first kept point, so the sums do not cancel), hence
     J^T J = sum over faces of B [[S0, S1], [S1, S2]] B^T and J^T r = B [R0, R1]."""
-    n_faces = model.shape[0]
     sums[:, :] = 0.0
     squares = 0.0
     for i in range(points.shape[0]):
@@ -184,6 +183,14 @@ def _normal_equations(points, face_of, residual, model, sums, hessian, gradient)
         sums[f, 3] += r
         sums[f, 4] += u * r
         squares += r * r
+    _face_normal_equations(model, sums, hessian, gradient)
+    return squares
+
+
+@kernel(**JIT)
+def _face_normal_equations(model, sums, hessian, gradient):
+    """hessian and gradient from the per-face sums (_normal_equations' columns: S0, S1, S2, R0, R1, x0)."""
+    n_faces = model.shape[0]
     hessian[:, :] = 0.0
     gradient[:] = 0.0
     b0, b1 = np.empty(6), np.empty(6)
@@ -212,7 +219,6 @@ def _normal_equations(points, face_of, residual, model, sums, hessian, gradient)
     for k in range(6):
         for j in range(k):
             hessian[k, j] = hessian[j, k]
-    return squares
 
 
 @kernel(**JIT)
@@ -227,36 +233,32 @@ def _linearise(pts, normals, offsets, ridge_q, ridge_u, width, length, rot, t, m
 
 
 @kernel(**JIT)
-def _depths(points, face_of, model, out):
-    """The depth each kept point's face predicts under `model` (_face_models)."""
-    for i in range(points.shape[0]):
-        f = face_of[i]
-        if f >= 0:
-            out[i] = (model[f, C] - points[i, 0] * model[f, A]) * model[f, INV_B]
-
-
-@kernel(**JIT)
-def _add_valley_curvature(pts, normals, offsets, rot, t, face_of, model, sums, cov):
+def _add_valley_curvature(normals, offsets, rot, t, sums, cov):
     """_add_curvature_term (estimate_kernel) for the dense pose: p'' from the predicted depths at +-s v, each
-    point on the face it is on now."""
+    point on the face it was on in the last linearisation (whose per-face sums `sums` holds). On a face the
+    predicted depth is linear in x at every pose, so p'' is too: its J^T p'' follows from the face's sums, with
+    no pass over the points."""
     v = np.empty(6)
     variance = _weakest_direction(cov, v)
     s = math.sqrt(variance)
-    n = pts.shape[0]
-    depth0, moved_depth, second = np.empty(n), np.empty(n), np.zeros(n)
+    n_faces = normals.shape[0]
+    model, moved_model = np.empty((n_faces, 7)), np.empty((n_faces, 7))
+    curved_sums = sums.copy()
     _face_models(normals, offsets, rot, t, model)
-    _depths(pts, face_of, model, depth0)
+    intercept, slope = np.zeros(n_faces), np.zeros(n_faces)  # p'' = intercept + slope x on each face
     moved, shifted = np.empty((3, 3)), np.empty(3)
     for sign in (1.0, -1.0):
         _moved_pose(rot, t, v, sign * s, moved, shifted)
-        _face_models(normals, offsets, moved, shifted, model)
-        _depths(pts, face_of, model, moved_depth)
-        for i in range(n):
-            if face_of[i] >= 0:
-                second[i] += (moved_depth[i] - depth0[i]) / variance
+        _face_models(normals, offsets, moved, shifted, moved_model)
+        for f in range(n_faces):
+            intercept[f] += (moved_model[f, C] * moved_model[f, INV_B] - model[f, C] * model[f, INV_B]) / variance
+            slope[f] -= (moved_model[f, A] * moved_model[f, INV_B] - model[f, A] * model[f, INV_B]) / variance
+    for f in range(n_faces):
+        at_x0 = intercept[f] + slope[f] * sums[f, 5]  # r = at_x0 + slope u, u = x - x0
+        curved_sums[f, 3] = at_x0 * sums[f, 0] + slope[f] * sums[f, 1]
+        curved_sums[f, 4] = at_x0 * sums[f, 1] + slope[f] * sums[f, 2]
     hessian, curved = np.empty((6, 6)), np.empty(6)
-    _face_models(normals, offsets, rot, t, model)
-    _normal_equations(pts, face_of, second, model, sums, hessian, curved)
+    _face_normal_equations(model, curved_sums, hessian, curved)
     _add_curvature_term(cov, hessian, curved, v, variance)
 
 
@@ -321,5 +323,5 @@ def refine_dense(points, normals, offsets, ridge_q, ridge_u, width, length, rot,
         for b in range(6):
             cov_out[a, b] *= sigma * sigma
     if cov_out[3, 3] + cov_out[4, 4] + cov_out[5, 5] > CURVED_ABOVE:
-        _add_valley_curvature(pts, normals, offsets, rot_out, t_out, face_of, model, sums, cov_out)
+        _add_valley_curvature(normals, offsets, rot_out, t_out, sums, cov_out)
     return OK, count, sigma
