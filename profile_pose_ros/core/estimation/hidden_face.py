@@ -25,8 +25,8 @@ import numpy as np
 
 from ..model.gauge import Gauge, GaugeError
 from ..model.render import true_corners
-from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
 from .corners import CornerResult
+from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
 from .stages import detect_corners
 
 # a run between two valid points wider than this many point pitches is a gap, not the profiler's spacing
