@@ -118,6 +118,8 @@ class CheckRun:
     COUNTS = ("sim_cell/triggers", "sim_cell/frames_dropped", "profiler_driver/profiles_dropped",
               "profiler_driver/profiles_published", "profiler_driver/unsynced_profiles",
               "profiler_driver/discarded_while_pairing", "profiler_driver/dropped_late_trigger_line",
+              "profiler_driver/dropped_unconfirmed_stamp", "profiler_driver/dropped_out_of_order",
+              "profiler_driver/dropped_untimed",
               "pose_estimator/poses_published",
               "pose_estimator/profiles_rejected", "pose_estimator/profiles_lost")
 
@@ -162,6 +164,9 @@ class CheckRun:
             "driver_unsynced": self.count("profiler_driver/unsynced_profiles"),
             "driver_discarded": self.count("profiler_driver/discarded_while_pairing"),
             "driver_dropped_late_line": self.count("profiler_driver/dropped_late_trigger_line"),
+            "driver_dropped_unconfirmed": self.count("profiler_driver/dropped_unconfirmed_stamp"),
+            "driver_dropped_out_of_order": self.count("profiler_driver/dropped_out_of_order"),
+            "driver_dropped_untimed": self.count("profiler_driver/dropped_untimed"),
             "estimator_rejected": self.count("pose_estimator/profiles_rejected"),
             "estimator_lost": self.count("pose_estimator/profiles_lost"),
             "driver_serial_latency_us": float(self.value("profiler_driver", "serial_latency_us", "nan")),
