@@ -152,3 +152,21 @@ def test_file_errors_name_the_file(tmp_path):
     unsafe.write_text("gauge: !!python/object/apply:os.system ['true']\n")
     with pytest.raises(GaugeError, match="unsafe.yaml"):
         Gauge.from_yaml(unsafe)
+
+
+def test_a_reduced_gauge_that_cannot_exist_is_refused_each_time_without_being_validated_again(monkeypatch):
+    """The paper gauge without face 3 leaves parallel faces 2 and 4 side by side: no ridge between them. The
+    estimator asks for it on every profile that an occlusion of face 3 hides; the refusal is made once."""
+    from profile_pose_ros.core.model import gauge as gauge_module
+
+    gauge = Gauge.from_yaml(PAPER_GAUGE)  # its own cache, not the session fixture's
+    validations = []
+    ridges = gauge_module._ridges
+    monkeypatch.setattr(gauge_module, "_ridges", lambda *args: validations.append(1) or ridges(*args))
+    messages = []
+    for _ in range(3):
+        with pytest.raises(GaugeError) as raised:
+            gauge.without_face(3)
+        messages.append(str(raised.value))
+    assert len(validations) == 1 and len(set(messages)) == 1 and "does not cross y = 0" in messages[0]
+    assert gauge.without_face(2) is gauge.without_face(2)

@@ -109,19 +109,21 @@ def prepare_partial_views(gauge: Gauge, options: EstimatorOptions) -> int:
     made = 0
     for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
         for face in range(1, n - count + 1) if n - count >= MIN_RIDGES else ():
-            made += _made(lambda: gauge.without_face(face, count))
+            made += _gauge_without(gauge, face, count) is not None
     for shown in range(MIN_RIDGES, n):
         for first in range(n - shown + 1):
-            made += _made(lambda: gauge.faces_in_view(first, first + shown))
+            gauge.faces_in_view(first, first + shown)  # the gauge's own ridges: it always exists
+            made += 1
     return made
 
 
-def _made(build: Callable[[], Gauge]) -> int:
+def _gauge_without(gauge: Gauge, face: int, count: int) -> Gauge | None:
+    """gauge.without_face(face, count), or None where the faces either side of them are parallel (a symmetric
+    gauge): they meet nowhere, so there is no virtual ridge and no corner between them."""
     try:
-        build()
-    except GaugeError:  # faces whose planes do not meet inside the gauge: the profile that asks is refused
-        return 0
-    return 1
+        return gauge.without_face(face, count)
+    except GaugeError:
+        return None
 
 
 def _options_for_a_gap(options: EstimatorOptions, before: float, after: float) -> EstimatorOptions:
@@ -161,9 +163,8 @@ def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: Estimat
     face = virtual + 1
     faces = f"face {face}" if count == 1 else f"faces {face}..{face + count - 1}"
     where = f"{faces} hidden by the gap at x {before * 1e3:.1f}..{after * 1e3:.1f} mm"
-    try:
-        without = gauge.without_face(face, count)
-    except GaugeError:  # the faces either side are parallel (a symmetric gauge): no virtual ridge, no corner
+    without = _gauge_without(gauge, face, count)
+    if without is None:
         return PoseEstimate(False, f"corner detection: {where}, but faces {face - 1} and {face + count} are parallel: "
                                    f"without a corner between them the faces seen do not determine the pose")
     found = estimate(points, without, relaxed)

@@ -150,12 +150,19 @@ class Gauge:
 
     def _with_faces(self, label: str, keep) -> "Gauge":
         """The gauge of the faces `keep` selects, made once per gauge and label (a profile's hypotheses ask for
-        the same ones again and again)."""
+        the same ones again and again). So is a refusal: faces whose planes never meet raise the same GaugeError
+        each time without being validated again."""
         cache = self.__dict__.setdefault("_with_faces_cache", {})
         if label not in cache:
-            cache[label] = Gauge(f"{self.name} {label}", self.width, self.length, np.array(self.normals[keep]),
-                                 np.array(self.offsets[keep]), self.base_z, source=self.source)
-        return cache[label]
+            try:
+                cache[label] = Gauge(f"{self.name} {label}", self.width, self.length, np.array(self.normals[keep]),
+                                     np.array(self.offsets[keep]), self.base_z, source=self.source)
+            except GaugeError as exc:
+                cache[label] = str(exc)
+        made = cache[label]
+        if isinstance(made, str):
+            raise GaugeError(made)  # a new one each time: a kept exception would grow its traceback per raise
+        return made
 
     def ridge_x(self, y: np.ndarray | float) -> np.ndarray:
         """x of every ridge at gauge y; shape (..., n)."""
