@@ -12,11 +12,11 @@ import math
 import numpy as np
 
 from ..model.sym3 import largest_eigenvalue
-from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, DENSE_ALWAYS, DENSE_STAGE,
-                    DENSE_WHEN_POORLY_DETERMINED, INCONSISTENT, JIT, NO_CONVERGED, NO_START, NOT_FINITE, O_DENSE,
-                    O_DENSESIG, O_DFLOOR, O_DITER, O_DMARGIN, O_DTHR, O_MARGIN, O_MAXIT, O_MAXRATIO, O_MAXREPROJ,
-                    O_NOISE, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT, REPROJECTION,
-                    REWEIGHT_ROUNDS)
+from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, COVARIANCE_CALIBRATION, DENSE_ALWAYS,
+                    DENSE_STAGE, DENSE_WHEN_POORLY_DETERMINED, INCONSISTENT, JIT, NO_CONVERGED, NO_START, NOT_FINITE,
+                    O_DENSE, O_DENSESIG, O_DFLOOR, O_DITER, O_DMARGIN, O_DTHR, O_MARGIN, O_MAXIT, O_MAXRATIO,
+                    O_MAXREPROJ, O_NOISE, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT,
+                    REPROJECTION, REWEIGHT_ROUNDS)
 from .dense_kernel import refine_dense
 from .estimate_kernel import (CURVED_ABOVE, _add_corner_valley_curvature, _cholesky, _closed_form, _detect, _quadratic,
                               _refine, _residuals, _spd_inverse, _unstack_residuals)
@@ -292,7 +292,7 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
         _add_corner_valley_curvature(q, u, w, corners, rot, t, corner_cov, cov)
     rot_out[:, :] = rot
     t_out[:] = t
-    # [delta_F, t] -> ROS [t, delta_G = R delta_F]: cov_ros = T cov T^T, T = [[0, I], [R, 0]]
+    # [delta_F, t] -> ROS [t, delta_G = R delta_F]: cov_ros = T cov T^T, T = [[0, I], [R, 0]], calibrated
     rr = np.zeros((6, 6))
     for k in range(3):
         rr[k, 3 + k] = 1.0
@@ -306,5 +306,5 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
                     continue
                 for j in range(6):
                     acc += rr[a, i] * cov[i, j] * rr[b, j]
-            cov_out[a, b] = acc
+            cov_out[a, b] = acc * COVARIANCE_CALIBRATION
     return OK, iterations, fit_rms, err, cf_err, _position_sigma(cov_out), tried

@@ -41,6 +41,13 @@ def _valid_x(points: np.ndarray) -> np.ndarray:
     return points[np.isfinite(points[:, 0]) & np.isfinite(points[:, 1]), 0]
 
 
+def _median(values: np.ndarray) -> float:
+    """np.median(values) of a non-empty 1-D array, without its general-purpose wrapper (most of its time here)."""
+    m = len(values)
+    middle = np.partition(values, [(m - 1) // 2, m // 2])
+    return float((middle[(m - 1) // 2] + middle[m // 2]) / 2)
+
+
 def profile_gaps(x: np.ndarray, pitch: float) -> list[tuple[float, float]]:
     """(x before, x after) of every gap between the valid points' x (increasing, `pitch` their usual spacing),
     widest first."""
@@ -58,11 +65,11 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     x = _valid_x(points)
     if n < MIN_RIDGES + 1 or len(x) < 3:  # the gauge without a face must keep MIN_RIDGES
         return None
-    pitch = float(np.median(np.diff(x)))
+    pitch = _median(np.diff(x))
     # a face that showed fewer points than a segment needs would not have been found either
     tolerance = options.corners.min_segment_points * pitch
     gaps = profile_gaps(x, pitch)[:2]
-    relaxed = [_options_for_a_gap(options, before, after) for before, after in gaps]
+    relaxed: list[EstimatorOptions | None] = [None] * len(gaps)  # made when a gap's detection is first needed
     # the faces a gap's detection finds do not depend on how many corners it was asked for (only whether that
     # is the count found): once known, the hypotheses that count cannot meet need no detection of their own
     faces_found: list[int | None] = [None] * len(gaps)
@@ -72,6 +79,8 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
         for k, (before, after) in enumerate(gaps):
             if faces_found[k] is not None and faces_found[k] != n + 1 - count:
                 continue
+            if relaxed[k] is None:
+                relaxed[k] = _options_for_a_gap(options, before, after)
             detection = detect_corners(points, n - count, relaxed[k].corners)
             faces_found[k] = len(detection.lines) if detection.ok else detection.faces_found or None
             found = _with_faces_hidden_in_gap(points, gauge, options, relaxed[k], detection, estimate, before, after,
@@ -200,8 +209,10 @@ def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: Estimator
 
 def _outside_footprint(found: PoseEstimate, virtual: int, gauge: Gauge, options: EstimatorOptions) -> str:
     half = np.array([gauge.width, gauge.length]) / 2 + options.footprint_margin
-    for i, (x, z) in enumerate(found.corners):
-        mapped = found.R @ np.array([x, 0.0, z]) + found.t
-        if i != virtual and np.any(np.abs(mapped[:2]) > half):
-            return reason_outside(i, mapped[0], mapped[1], gauge)
-    return ""
+    mapped = found.corners @ found.R[:, [0, 2]].T + found.t  # each corner [x, 0, z] in G
+    outside = np.any(np.abs(mapped[:, :2]) > half, axis=1)
+    outside[virtual] = False  # the virtual corner may lie far out when its faces are nearly parallel
+    if not outside.any():
+        return ""
+    i = int(np.argmax(outside))
+    return reason_outside(i, mapped[i, 0], mapped[i, 1], gauge)

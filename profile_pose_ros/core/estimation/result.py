@@ -81,12 +81,14 @@ class EstimatorOptions:
         v[codes.O_MAXRATIO] = self.max_residual_ratio
         v[codes.O_GAP] = np.nan if c.virtual_corner_gap is None else c.virtual_corner_gap
         v[codes.O_SEARCH] = 1.0 if self.basin_search and self.refine else 0.0
-        v[codes.O_SEARCHSIG] = self.basin_search_min_sigma
+        # the thresholds are on the published (calibrated) std; the kernel compares its uncalibrated one
+        calibrated = math.sqrt(codes.COVARIANCE_CALIBRATION)
+        v[codes.O_SEARCHSIG] = self.basin_search_min_sigma / calibrated
         dense = DenseOptions()
         v[codes.O_DENSE] = ({"corners": codes.DENSE_NEVER, "dense": codes.DENSE_ALWAYS,
                              "auto": codes.DENSE_WHEN_POORLY_DETERMINED}[self.refine_model]
                             if self.refine else codes.DENSE_NEVER)
-        v[codes.O_DENSESIG] = self.dense_above_sigma
+        v[codes.O_DENSESIG] = self.dense_above_sigma / calibrated
         v[codes.O_DMARGIN] = dense.ridge_margin
         v[codes.O_DTHR] = dense.outlier_threshold
         v[codes.O_DFLOOR] = dense.min_outlier_floor
