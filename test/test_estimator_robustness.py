@@ -281,3 +281,22 @@ def test_auto_fits_every_point_of_a_view_with_a_face_hidden_and_its_covariance_h
         refused += not estimate.ok
     assert refused <= 10
     assert 5.0 < np.mean(nees) < 7.0 and np.mean(np.array(nees) > 16.812) < 0.04
+
+
+def test_a_refinement_cut_short_by_its_iteration_limit_is_not_weighted_again(gauge, rng):
+    """Weights are formed again only at a minimum: a round that ends at max_iterations has not reached one,
+    and forming them there would buy another max_iterations each time (four-ridge gauges' wrong starts crept
+    along their valley for ten rounds of 30, 0.2 ms each)."""
+    from profile_pose_ros.core.estimation.solver import PoseSolution
+    from profile_pose_ros.core.estimation.stages import detect_corners, refine_pose
+    from profile_pose_ros.core.model.rotation import so3_exp
+
+    rotation, t = sample_pose(gauge, rng)
+    points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+    detection = detect_corners(points, gauge.n_ridges)
+    start = PoseSolution(rotation @ so3_exp(np.array([0.05, -0.04, 0.03])), t + np.array([4e-3, -3e-3, 5e-3]),
+                         np.zeros((gauge.n_ridges, 2)))
+    short = refine_pose(gauge, detection.corners, start, detection.covariance(None), max_iterations=2)
+    assert short.iterations == 2
+    full = refine_pose(gauge, detection.corners, start, detection.covariance(None))
+    assert full.iterations < 30  # from there it converges: the limit, not the start, cut the short one

@@ -873,9 +873,11 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
     and, up to `rounds` times in all, formed again at the minimum until they no longer move it: a start far
     from the minimum (a virtual ridge of a hidden face that runs nearly along the laser plane) otherwise
     leaves the minimum of a mis-weighted cost, off the maximum-likelihood pose by several of its standard
-    deviations in the direction the weights turned (docs/estimator.md). The basin search's and the unscented
-    transform's many refinements take one round: they start at or compare minima, and more rounds there
-    doubled a poorly determined profile's time.
+    deviations in the direction the weights turned (docs/estimator.md). A round that ends at max_iterations
+    stopped short of a minimum (a start creeping along a flat valley, as a four-ridge gauge's wrong starts do):
+    no weights are formed again there, or each further round would cost max_iterations more. The basin
+    search's and the unscented transform's many refinements take one round: they start at or compare minima,
+    and more rounds there doubled a poorly determined profile's time.
     """
     n2 = 2 * corners.shape[0]
     rot = rot.copy()  # the current pose, updated in place: the loop allocates nothing
@@ -901,7 +903,8 @@ def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, poli
         _residual_covariance(u, w, rot, corner_cov, sigma_r)
         invertible = _spd_inverse(sigma_r, information)
         chi2 = _quadratic(r, information) if invertible else np.inf
-        if not (weighted and invertible) or round_ == rounds - 1 or chi2 > REWEIGHT_HOPELESS_CHI2 * n2 or \
+        if not (weighted and invertible) or round_ == rounds - 1 or done >= max_iterations or \
+                chi2 > REWEIGHT_HOPELESS_CHI2 * n2 or \
                 _weighted_step_chi2(u, w, corners, rot, r, information) < REWEIGHT_CHI2:
             break
         weight[:, :] = information
