@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from profile_pose_ros.core import estimate_pose, render_profile, sample_pose
 from profile_pose_ros.tools.numpy_baseline import estimate_baseline
@@ -95,3 +96,19 @@ def test_quick_robustness_runs_every_condition_and_the_shipped_gauges_publish_no
     refusing = [c for c in cells.values() if c["refused_pct"] > 0]
     assert refusing and all(0 <= c["refused_beyond_bound_pct"] <= c["refused_pct"] + 1e-9 for c in refusing)
     assert all(c["wrong_if_refused_published"] >= 0 for c in refusing) and "refused beyond bound %" in stdout
+    # and every cell the wrong poses its accepted poses' covariances predict: none of the shipped gauges' clean ones
+    assert all(c["wrong_expected"] >= 0 for c in cells.values()) and "expected from the accepted poses" in stdout
+    assert shipped["gauge_paper_n5.yaml | clean"]["wrong_expected"] < 1e-3
+
+
+def test_the_chance_of_a_wrong_pose_is_the_gaussian_tail_of_its_covariance():
+    from scipy.stats import chi2, norm
+
+    from profile_pose_ros.tools.robustness import WRONG_POSITION, may_be_wrong, wrong_if_published
+
+    rng = np.random.default_rng(1)
+    one_axis = np.diag([WRONG_POSITION ** 2, 1e-12, 1e-12, 1e-12, 1e-12, 1e-12])  # std 1 mm along x only
+    assert wrong_if_published(one_axis, rng=rng) == pytest.approx(2 * norm.sf(1.0), abs=0.01)
+    round_ball = np.diag([(WRONG_POSITION / 2) ** 2] * 3 + [1e-12] * 3)  # 0.5 mm on each axis
+    assert wrong_if_published(round_ball, rng=rng) == pytest.approx(chi2.sf(4.0, 3), abs=0.01)
+    assert may_be_wrong(one_axis) and not may_be_wrong(np.diag([(WRONG_POSITION / 7) ** 2] * 3 + [1e-12] * 3))
