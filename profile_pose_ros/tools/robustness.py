@@ -93,7 +93,8 @@ def wrong_if_published(covariance: np.ndarray, draws: int = 20000, rng: np.rando
     way; a sum over many poses wants rng, whose draws differ from pose to pose)."""
     values, vectors = np.linalg.eigh(covariance)
     standard = _standard_draws(draws) if rng is None else rng.standard_normal((draws, 6))
-    errors = standard @ (vectors * np.sqrt(np.clip(values, 0.0, None))).T
+    # einsum, not @: a matrix product would wake BLAS threads onto the cores another worker is timing on
+    errors = np.einsum("dk,jk->dj", standard, vectors * np.sqrt(np.clip(values, 0.0, None)))
     return float(((np.linalg.norm(errors[:, :3], axis=1) > WRONG_POSITION) |
                   (np.linalg.norm(errors[:, 3:], axis=1) > WRONG_ROTATION)).mean())
 
