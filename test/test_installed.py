@@ -149,11 +149,16 @@ def replayed_live_with_clock(ros, prefix: Path, env: dict, bag: Path) -> None:
         recorded = {cdr_stamp_ns(data): data for connection, _, data in reader.messages(
             [c for c in reader.connections if c.topic == "/pose_with_covariance"])}
         start, end = reader.start_time, reader.end_time
-    live, clock = {}, []
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    live, clock, reports = {}, [], {}
     listener = ros.node("replay_listener")
     listener.create_subscription(PoseWithCovarianceStamped, "/pose_with_covariance",
                                  lambda data: live.setdefault(cdr_stamp_ns(data), data), 100, raw=True)
     listener.create_subscription(Clock, "/clock", clock.append, 10)
+    # the replay estimator's and player's own counts, for a failure to say where the poses went
+    listener.create_subscription(DiagnosticArray, "/diagnostics", lambda array: reports.update(
+        {status.name: {v.key: v.value for v in status.values} for status in array.status}), 50)
     lib = prefix / "lib" / "profile_pose_ros"
     run_env = dict(env, ROS_DOMAIN_ID=str(ros.domain_id))
     cell_yaml = prefix / "share" / "profile_pose_ros" / "config" / "cell.yaml"  # what the bringup ran with
@@ -175,7 +180,8 @@ def replayed_live_with_clock(ros, prefix: Path, env: dict, bag: Path) -> None:
     try:
         # the player's profiles ride a sensor-data queue: a loaded runner may lose a few
         assert ros.spin_until(lambda: clock and len(live.keys() & recorded.keys()) >= 0.9 * len(recorded),
-                              timeout=120.0), (len(live), len(recorded), len(live.keys() & recorded.keys()))
+                              timeout=120.0), (len(live), len(recorded), len(live.keys() & recorded.keys()),
+                                               reports, _bringup_estimator_log(bag))
     finally:
         for process in (player, estimator):
             process.send_signal(signal.SIGINT)
@@ -183,6 +189,12 @@ def replayed_live_with_clock(ros, prefix: Path, env: dict, bag: Path) -> None:
     assert all(start <= c.clock.sec * 10**9 + c.clock.nanosec <= end for c in clock)  # the bag's time
     common = live.keys() & recorded.keys()
     assert {stamp: live[stamp] for stamp in common} == {stamp: recorded[stamp] for stamp in common}
+
+
+def _bringup_estimator_log(bag: Path) -> str:
+    """The last lines the recording bringup's estimator logged (beside its bag): what it refused or skipped."""
+    log = bag.parent / "pose_estimator.log"
+    return "\n".join(log.read_text(errors="replace").splitlines()[-15:]) if log.exists() else "no log"
 
 
 def parent(pid: int) -> int:
