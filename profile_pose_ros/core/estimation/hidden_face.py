@@ -41,13 +41,6 @@ def _valid_x(points: np.ndarray) -> np.ndarray:
     return points[np.isfinite(points[:, 0]) & np.isfinite(points[:, 1]), 0]
 
 
-def _median(values: np.ndarray) -> float:
-    """np.median(values) of a non-empty 1-D array, without its general-purpose wrapper (most of its time here)."""
-    m = len(values)
-    middle = np.partition(values, [(m - 1) // 2, m // 2])
-    return float((middle[(m - 1) // 2] + middle[m // 2]) / 2)
-
-
 def profile_gaps(x: np.ndarray, pitch: float) -> list[tuple[float, float]]:
     """(x before, x after) of every gap between the valid points' x (increasing, `pitch` their usual spacing),
     widest first."""
@@ -65,7 +58,7 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     x = _valid_x(points)
     if n < MIN_RIDGES + 1 or len(x) < 3:  # the gauge without a face must keep MIN_RIDGES
         return None
-    pitch = _median(np.diff(x))
+    pitch = float(np.median(np.diff(x)))
     # a face that showed fewer points than a segment needs would not have been found either
     tolerance = options.corners.min_segment_points * pitch
     gaps = profile_gaps(x, pitch)[:2]
