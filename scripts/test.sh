@@ -14,4 +14,7 @@ if ! command -v avr-gcc >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-
     || echo "could not install the AVR toolchain; the firmware build test will be skipped"
 fi
 wait "$KERNEL_BUILD" || echo "the prebuilt kernel could not be built here; the suite runs the JIT-compiled one"
-exec "$VENV/bin/python" -m pytest -p no:cacheprovider "$@"
+# On every core (up to four workers), a test file to a worker so that a module's fixtures are made once; the
+# tests marked `alone` (they judge the live loop's timing, or load the machine) take turns with everything
+# else (test/conftest.py). `-n 0` after this command runs the suite serially.
+exec "$VENV/bin/python" -m pytest -p no:cacheprovider --numprocesses auto --maxprocesses 4 --dist loadfile "$@"

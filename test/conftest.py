@@ -1,6 +1,11 @@
 """Shared fixtures: the shipped gauge, seeded RNGs, and a fresh rclpy Context per test."""
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import os
+import shutil
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -11,6 +16,64 @@ import pytest
 from profile_pose_ros.core import Gauge
 from profile_pose_ros.nodes.process_tuning import LOOP_SWITCH_INTERVAL_S, shorten_switch_interval
 from profile_pose_ros.tools.processes import fresh_domain_id
+
+# Side by side (pytest-xdist, scripts/test.sh), each worker takes DDS domains of its own: 1-100 and 101-200
+# for two workers
+_WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
+if _WORKER.startswith("gw"):
+    _SHARE = 200 // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    _FIRST = 1 + int(_WORKER[2:]) * _SHARE
+    os.environ["PROFILE_POSE_DOMAIN_IDS"] = f"{_FIRST}-{_FIRST + _SHARE - 1}"
+
+
+class _Turns:
+    """Across the workers of one run: a test marked `alone` waits until no other test runs, and no test starts
+    while it runs, so a test that judges the live loop's timing has the machine to itself as in a serial run.
+    A readers-writer lock on flock(2) with a gate in front, so that a waiting `alone` test is not starved by
+    the other workers' tests starting one after another."""
+
+    def __init__(self, directory: Path) -> None:
+        self.gate = open(directory / "turns.gate", "a")
+        self.lock = open(directory / "turns.lock", "a")
+
+    @contextlib.contextmanager
+    def turn(self, alone: bool):
+        fcntl.flock(self.gate, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(self.lock, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        finally:
+            fcntl.flock(self.gate, fcntl.LOCK_UN)
+        try:
+            yield
+        finally:
+            fcntl.flock(self.lock, fcntl.LOCK_UN)
+
+
+_turns: _Turns | None = None
+_TURNS_DIR = "PROFILE_POSE_TEST_TURNS"  # made by the run's controller, inherited by its workers
+
+
+def pytest_configure(config) -> None:
+    global _turns
+    if hasattr(config, "workerinput"):
+        if os.environ.get(_TURNS_DIR):
+            _turns = _Turns(Path(os.environ[_TURNS_DIR]))
+    elif config.pluginmanager.hasplugin("xdist") and config.getoption("numprocesses", None):
+        os.environ[_TURNS_DIR] = tempfile.mkdtemp(prefix="profile_pose_turns_")
+
+
+def pytest_unconfigure(config) -> None:
+    if not hasattr(config, "workerinput") and os.environ.get(_TURNS_DIR):
+        shutil.rmtree(os.environ.pop(_TURNS_DIR), ignore_errors=True)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """Setup, call and teardown of each test (a module's fixtures with its first test) inside its turn."""
+    if _turns is None:
+        return (yield)
+    with _turns.turn(item.get_closest_marker("alone") is not None):
+        return (yield)
 
 # Nodes under test run in this process: tuned as their own processes are (run_node's switch_interval)
 shorten_switch_interval(LOOP_SWITCH_INTERVAL_S)

@@ -42,6 +42,7 @@ def test_numpy_baseline_solves_the_same_problem(gauge, rng):
         assert np.max(np.abs(rotation - ours.R)) < 1e-7
 
 
+@pytest.mark.alone  # loads the machine at 1 kHz
 def test_quick_node_benchmark_runs_both_rates(tmp_path):
     stdout, data = run_quick("node-benchmark", "node_benchmark.json", tmp_path)
     runs = data["runs"]

@@ -205,6 +205,7 @@ def parent(pid: int) -> int:
 # live replay (0.9 needed), the rest lost on the profile's sensor-data queue or taken before /clock reached
 # the estimator; everything else this test checks had passed
 @pytest.mark.flaky(reruns=1)
+@pytest.mark.alone  # the live replay counts the poses the estimator keeps up with
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL"])
 def test_the_bringup_from_the_install_owns_its_nodes(ros, workspace, tmp_path, how) -> None:
     from profile_pose_ros.tools.processes import fresh_domain_id

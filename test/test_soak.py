@@ -5,6 +5,9 @@ import pytest
 
 from profile_pose_ros.tools import soak
 
+# the loop at up to 1 kHz, judged by the periods it answers: with no other test beside it
+pytestmark = pytest.mark.alone
+
 
 def test_a_short_soak_counts_every_pose_and_every_process(tmp_path) -> None:
     result = soak.run_soak(0.25, 100.0, 5.0, "corners", tmp_path)

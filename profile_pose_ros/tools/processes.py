@@ -15,8 +15,13 @@ _DOMAINS = itertools.count()
 def fresh_domain_id() -> int:
     """A DDS domain no earlier call of this process handed out (within 200), and likely none of another
     process running beside it (valid Fast DDS ids: 0-232): each graph or test context gets its own, so
-    nothing left of an earlier one can answer."""
-    return 1 + (os.getpid() * 13 + next(_DOMAINS)) % 200
+    nothing left of an earlier one can answer. PROFILE_POSE_DOMAIN_IDS=first-last keeps a process to a
+    range of its own, so that runners started side by side (the test suite's workers) never share one."""
+    first, last = 1, 200
+    confined = os.environ.get("PROFILE_POSE_DOMAIN_IDS")
+    if confined:
+        first, last = (int(part) for part in confined.split("-"))
+    return first + (os.getpid() * 13 + next(_DOMAINS)) % (last - first + 1)
 
 
 def executable(name: str | None, module: str) -> list[str]:
