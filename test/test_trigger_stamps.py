@@ -24,6 +24,10 @@ def assert_periodic(run: dict) -> None:
                                                                                            run["driver"])
 
 
+# each test loads a core with a busy process beside its graph: with no other test beside it
+pytestmark = pytest.mark.alone
+
+
 @pytest.fixture
 def cpu_load():
     load = busy_processes(1)
