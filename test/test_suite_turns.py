@@ -1,11 +1,14 @@
-"""The suite's own turns (conftest._Turns): in a parallel run, a test marked `alone` has the machine to itself,
-and a waiting one is not starved by the other workers' tests."""
+"""The suite run in parallel (scripts/test.sh): a test marked `alone` has the machine to itself (conftest._Turns)
+and a waiting one is not starved by the other workers' tests; each worker keeps to DDS domains of its own."""
 from __future__ import annotations
 
 import fcntl
 import threading
 
+import pytest
+
 from conftest import _Turns, wait_for
+from profile_pose_ros.tools.processes import domain_range, fresh_domain_id
 
 
 def can_take(turns: _Turns, which: str, mode: int) -> bool:
@@ -39,3 +42,12 @@ def test_an_alone_test_waits_for_the_running_one_and_holds_back_the_next(tmp_pat
     leave.set()
     waiter.join(10.0)
     assert can_take(probe, "gate", fcntl.LOCK_EX) and can_take(probe, "lock", fcntl.LOCK_SH)
+
+
+def test_a_worker_keeps_to_its_domains_and_a_malformed_range_says_what_it_expects(monkeypatch) -> None:
+    monkeypatch.setenv("PROFILE_POSE_DOMAIN_IDS", "101-110")
+    assert {fresh_domain_id() for _ in range(30)} == set(range(101, 111))
+    assert domain_range("") == (1, 200)
+    for wrong in ("101", "a-b", "5-3", "0-233", "-1-4"):
+        with pytest.raises(ValueError, match="PROFILE_POSE_DOMAIN_IDS"):
+            domain_range(wrong)

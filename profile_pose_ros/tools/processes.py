@@ -10,18 +10,30 @@ from pathlib import Path
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 _DOMAINS = itertools.count()
+MAX_DOMAIN_ID = 232  # the largest domain id Fast DDS takes (its ports must fit in 16 bits)
 
 
 def fresh_domain_id() -> int:
     """A DDS domain no earlier call of this process handed out (within 200), and likely none of another
-    process running beside it (valid Fast DDS ids: 0-232): each graph or test context gets its own, so
+    process running beside it: each graph or test context gets its own, so
     nothing left of an earlier one can answer. PROFILE_POSE_DOMAIN_IDS=first-last keeps a process to a
     range of its own, so that runners started side by side (the test suite's workers) never share one."""
-    first, last = 1, 200
-    confined = os.environ.get("PROFILE_POSE_DOMAIN_IDS")
-    if confined:
-        first, last = (int(part) for part in confined.split("-"))
+    first, last = domain_range(os.environ.get("PROFILE_POSE_DOMAIN_IDS", ""))
     return first + (os.getpid() * 13 + next(_DOMAINS)) % (last - first + 1)
+
+
+def domain_range(confined: str) -> tuple[int, int]:
+    """The DDS domains fresh_domain_id may hand out: PROFILE_POSE_DOMAIN_IDS's `first-last`, 1-200 if unset."""
+    if not confined:
+        return 1, 200
+    parts = confined.split("-")
+    if len(parts) != 2 or not all(part.strip().isdigit() for part in parts):
+        raise ValueError(f"PROFILE_POSE_DOMAIN_IDS={confined!r}: expected first-last, e.g. 101-200")
+    first, last = int(parts[0]), int(parts[1])
+    if not 0 <= first <= last <= MAX_DOMAIN_ID:
+        raise ValueError(f"PROFILE_POSE_DOMAIN_IDS={confined!r}: expected 0 <= first <= last <= {MAX_DOMAIN_ID} "
+                         "(Fast DDS's domain ids)")
+    return first, last
 
 
 def executable(name: str | None, module: str) -> list[str]:
