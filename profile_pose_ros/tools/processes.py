@@ -14,10 +14,11 @@ MAX_DOMAIN_ID = 232  # the largest domain id Fast DDS takes (its ports must fit 
 
 
 def fresh_domain_id() -> int:
-    """A DDS domain no earlier call of this process handed out (within 200), and likely none of another
-    process running beside it: each graph or test context gets its own, so
-    nothing left of an earlier one can answer. PROFILE_POSE_DOMAIN_IDS=first-last keeps a process to a
-    range of its own, so that runners started side by side (the test suite's workers) never share one."""
+    """A DDS domain no recent call of this process handed out (the last 200 calls, or as many as
+    PROFILE_POSE_DOMAIN_IDS's range holds), and likely none of another process running beside it: each graph
+    or test context gets its own, so nothing left of an earlier one can answer. PROFILE_POSE_DOMAIN_IDS=
+    first-last keeps a process to a range of its own, so that runners started side by side (the test suite's
+    workers) never share one."""
     first, last = domain_range(os.environ.get("PROFILE_POSE_DOMAIN_IDS", ""))
     return first + (os.getpid() * 13 + next(_DOMAINS)) % (last - first + 1)
 
