@@ -75,6 +75,7 @@ def pytest_runtest_protocol(item, nextitem):
     with _turns.turn(item.get_closest_marker("alone") is not None):
         return (yield)
 
+
 # Nodes under test run in this process: tuned as their own processes are (run_node's switch_interval)
 shorten_switch_interval(LOOP_SWITCH_INTERVAL_S)
 
