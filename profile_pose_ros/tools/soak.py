@@ -106,7 +106,7 @@ class Soak:
         then until two readings a second apart agree on the profiles' counts: a node starved of CPU (the
         simulator, when the loop nodes run real-time) reports late, and a stale count would skew every stage's
         total. The controller's periods and report times run on with the trigger clock paused, so they are
-        left out of the comparison (with them in, it never agreed and always ran to the timeout)."""
+        left out of the comparison: they never agree."""
         self.exp.wait(1.5)
         deadline, counts = time.monotonic() + timeout, self.counters()
         while time.monotonic() < deadline:
