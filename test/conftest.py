@@ -15,14 +15,15 @@ import pytest
 
 from profile_pose_ros.core import Gauge
 from profile_pose_ros.nodes.process_tuning import LOOP_SWITCH_INTERVAL_S, shorten_switch_interval
-from profile_pose_ros.tools.processes import fresh_domain_id
+from profile_pose_ros.tools.processes import domain_range, fresh_domain_id
 
-# Side by side (pytest-xdist, scripts/test.sh), each worker takes DDS domains of its own: 1-100 and 101-200
-# for two workers
+# Side by side (pytest-xdist, scripts/test.sh), each worker takes a share of fresh_domain_id's usual domains:
+# 1-100 and 101-200 for two workers
 _WORKER = os.environ.get("PYTEST_XDIST_WORKER", "")
 if _WORKER.startswith("gw"):
-    _SHARE = 200 // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-    _FIRST = 1 + int(_WORKER[2:]) * _SHARE
+    _ALL_FIRST, _ALL_LAST = domain_range("")
+    _SHARE = (_ALL_LAST - _ALL_FIRST + 1) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    _FIRST = _ALL_FIRST + int(_WORKER[2:]) * _SHARE
     os.environ["PROFILE_POSE_DOMAIN_IDS"] = f"{_FIRST}-{_FIRST + _SHARE - 1}"
 
 
