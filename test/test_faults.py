@@ -21,11 +21,10 @@ def test_faults_on_the_running_loop_break_no_invariant_and_clear(tmp_path) -> No
         assert r["recovered"], name
     assert results["profiler stalls (no frames)"]["poses_during_fault"] == 0
     assert results["every profiler frame with a flipped bit"]["poses_during_fault"] == 0
-    # the controller breaks the link at the first STATE after it takes the fault and takes back that period's step
-    # (docs/safety.md); the step of the period under way, answered before the fault, still lands, and lands after
-    # the injection's time when set_parameters' answer reaches this client quickly (1 run of the test in 4; of 20
-    # episodes measured alone, 19 landed 9-50 ms before, one 0.6 ms after, on the periods' 12 ms cadence). One
-    # moving period at the most, within one period
+    # the controller breaks the link at the first STATE after it takes the fault and takes back that period's step;
+    # the step of the period under way, answered before the fault, still lands, after the injection's time when
+    # set_parameters' answer reaches this client quickly (docs/safety.md). One moving period at the most, within
+    # one period
     session_end = results["controller ends the session mid-motion"]
     assert session_end["moving_periods_during_fault"] <= 1 and session_end["stop_periods"] <= 1.0, session_end
     assert results["motoplus_bridge SIGTERM, restarted"]["session_end"] == "STOP"
