@@ -27,6 +27,7 @@ import numpy as np
 from ..core.wire.motoplus_protocol import metres_to_units
 from ..core.wire.pose_cdr import decode_twist_cdr, encode_pose_with_covariance_cdr, encode_twist_cdr
 from ..core.model.rotation import quaternion_xyzw, so3_exp
+from .processes import fresh_domain_id
 
 NOMINAL = np.array([0.01, -0.02, 0.40])
 # (age of the stamp in seconds, as the case's first byte picks it; None: stamped 0, 1970)
@@ -79,7 +80,7 @@ def pose_case(data: bytes) -> tuple[np.ndarray, np.ndarray, float | None, str]:
 class NodeChain:
     """pd_compensator -> motoplus_bridge in one process, with a reference at the nominal pose."""
 
-    def __init__(self, domain_id: int = 201) -> None:
+    def __init__(self) -> None:
         import rclpy
         from geometry_msgs.msg import PoseStamped
         from rclpy.context import Context
@@ -91,7 +92,7 @@ class NodeChain:
 
         self.rclpy = rclpy
         self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
+        rclpy.init(context=self.context, domain_id=fresh_domain_id())
         local = LocalTopics()
         # the bridge is never armed: no connection is made, and its client still computes each increment
         self.bridge = MotoPlusBridgeNode(local=local, context=self.context)
