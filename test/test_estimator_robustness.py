@@ -6,6 +6,7 @@ from hypothesis import strategies as st
 
 from profile_pose_ros.core import estimate_pose, pose_error, render_profile, sample_pose, true_corners
 from profile_pose_ros.core.estimation.estimator import pose_nees
+from profile_pose_ros.core.estimation.hidden_face import GAP_PITCHES, profile_gaps
 from profile_pose_ros.core.compiled.estimate_kernel import _median5
 from profile_pose_ros.core.model.gauge import Gauge, GaugeError
 from profile_pose_ros.core.design.gauge_design import random_gauge
@@ -18,6 +19,26 @@ finite = st.floats(-1e3, 1e3, allow_nan=False)
 @given(st.lists(finite, min_size=5, max_size=5))
 def test_median_of_five_is_the_median(values):
     assert _median5(*values) == np.median(values)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 400), st.integers(1, 60)), max_size=4), st.integers(0, 3))
+def test_profile_gaps_are_the_widest_runs_without_points(holes, most):
+    """The compiled scan against numpy's mask, diff, median and sort: the spacing, and the widest gaps first."""
+    points = np.column_stack([np.arange(500) * 1e-4, np.full(500, 0.4)])
+    for start, width in holes:
+        points[start:start + width, 1 if width % 2 else 0] = np.nan
+    valid, pitch, gaps = profile_gaps(points, most)
+    x = points[np.isfinite(points).all(axis=1), 0]
+    assert valid == len(x)
+    if len(x) < 2:
+        assert gaps == []
+        return
+    steps = np.diff(x)
+    assert pitch == np.median(steps)
+    wide = np.flatnonzero(steps > GAP_PITCHES * pitch)
+    widths = sorted((steps[k] for k in wide), reverse=True)[:most]
+    assert [after - before for before, after in gaps] == widths
 
 
 def test_spikes_are_dropped_before_they_make_faces(rng):

@@ -147,8 +147,8 @@ def load(timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile pipeline_kernel.estimate, estimate_kernel.refine_pose, .detect, decode_kernel.decode_xz and
-    dense_kernel.refine_dense with numba.pycc (in its own process: it loads LLVM)."""
+    """Compile pipeline_kernel.estimate, estimate_kernel.refine_pose, .detect, .profile_gaps,
+    decode_kernel.decode_xz and dense_kernel.refine_dense with numba.pycc (in its own process: it loads LLVM)."""
     import warnings
 
     from numba import types
@@ -191,6 +191,10 @@ def build_into(directory: Path) -> None:
     @compiler.export("detect", detect_signature)
     def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
         return estimate_kernel.detect(points, n_corners, opt, corners, jac, line_var, info, lines_out)
+
+    @compiler.export("profile_gaps", types.Tuple((int64, int64, f8))(array2, f8, array2))
+    def profile_gaps(points, pitches, gaps):
+        return estimate_kernel.profile_gaps(points, pitches, gaps)
 
     table = types.Array(types.float32, 2, "C", readonly=True)
 

@@ -26,8 +26,8 @@ _kernel_name = ""
 
 
 def kernels():
-    """The compiled functions in use (estimate, detect, refine_pose, decode_xz, refine_dense): loaded (and,
-    the first time on a machine, built) on first need."""
+    """The compiled functions in use (estimate, detect, refine_pose, profile_gaps, decode_xz, refine_dense):
+    loaded (and, the first time on a machine, built) on first need."""
     global _kernels, _kernel_name
     if _kernels is None:
         choice = os.environ.get("PROFILE_POSE_KERNEL", "auto")
@@ -46,7 +46,8 @@ def kernels():
             from .dense_kernel import refine_dense
 
             _kernels = SimpleNamespace(estimate=pipeline_kernel.estimate, detect=estimate_kernel.detect,
-                                       refine_pose=estimate_kernel.refine_pose, decode_xz=jit_decode_xz,
+                                       refine_pose=estimate_kernel.refine_pose,
+                                       profile_gaps=estimate_kernel.profile_gaps, decode_xz=jit_decode_xz,
                                        refine_dense=refine_dense)
             _kernel_name = "numba jit" if HAVE_NUMBA and choice != "python" else "uncompiled (python)"
     return _kernels

@@ -23,8 +23,8 @@ from typing import Callable
 
 import numpy as np
 
+from ..compiled.loader import kernels
 from ..model.gauge import Gauge, GaugeError
-from ..model.render import true_corners
 from .corners import CornerResult
 from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
 from .stages import detect_corners
@@ -36,17 +36,12 @@ MIN_RIDGES = 4  # the fewest the estimator solves: a gauge seen in part must kee
 MAX_HIDDEN_IN_A_GAP = 2
 
 
-def _valid_x(points: np.ndarray) -> np.ndarray:
-    # column by column: isfinite(points).all(axis=1) reduces along the short axis, several times slower
-    return points[np.isfinite(points[:, 0]) & np.isfinite(points[:, 1]), 0]
-
-
-def profile_gaps(x: np.ndarray, pitch: float) -> list[tuple[float, float]]:
-    """(x before, x after) of every gap between the valid points' x (increasing, `pitch` their usual spacing),
-    widest first."""
-    steps = np.diff(x)
-    wide = np.flatnonzero(steps > GAP_PITCHES * pitch)
-    return [(float(x[k]), float(x[k + 1])) for k in wide[np.argsort(-steps[wide])]]
+def profile_gaps(points: np.ndarray, most: int = 2) -> tuple[int, float, list[tuple[float, float]]]:
+    """(valid points, their usual x spacing, (x before, x after) of up to `most` gaps between them, widest
+    first); the points' x increasing."""
+    gaps = np.empty((most, 2))
+    valid, found, pitch = kernels().profile_gaps(np.ascontiguousarray(points, dtype=np.float64), GAP_PITCHES, gaps)
+    return int(valid), float(pitch), [(float(before), float(after)) for before, after in gaps[:found]]
 
 
 def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
@@ -55,13 +50,13 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     """The pose with one or two adjacent faces hidden by a gap or faces out of view at the ends, or a refusal
     saying why not, or None when the profile looks like none of these: the caller's refusal stands."""
     n = gauge.n_ridges
-    x = _valid_x(points)
-    if n < MIN_RIDGES + 1 or len(x) < 3:  # the gauge without a face must keep MIN_RIDGES
+    if n < MIN_RIDGES + 1 or points.ndim != 2 or points.shape[1] != 2:  # the gauge without a face must keep MIN_RIDGES
         return None
-    pitch = float(np.median(np.diff(x)))
+    valid, pitch, gaps = profile_gaps(points)
+    if valid < 3:
+        return None
     # a face that showed fewer points than a segment needs would not have been found either
     tolerance = options.corners.min_segment_points * pitch
-    gaps = profile_gaps(x, pitch)[:2]
     relaxed: list[EstimatorOptions | None] = [None] * len(gaps)  # made when a gap's detection is first needed
     # the faces a gap's detection finds do not depend on how many corners it was asked for (only whether that
     # is the count found): once known, the hypotheses that count cannot meet need no detection of their own
@@ -172,13 +167,15 @@ def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: Estimat
     found = estimate(points, without, relaxed)
     if not found.ok:
         return replace(found, reason=f"{found.reason} (with {where})")
-    hidden = true_corners(gauge, found.R, found.t)[face - 1:face + count, 0]  # the ridges bounding them
+    hidden = _ridge_x(gauge, found.R, found.t, face - 1, face + count)  # the ridges bounding them
     reason = _outside_footprint(found, virtual, gauge, options)
     if not reason and (hidden.min() < before - tolerance or hidden.max() > after + tolerance):
         reason = (f"the pose puts {faces} at x {hidden.min() * 1e3:.1f}..{hidden.max() * 1e3:.1f} mm, where "
                   f"the profile has points")
-    return rejected(found, f"{reason} (with {where})") if reason else replace(found, hidden_face=face,
-                                                                              faces_hidden=count)
+    if reason:
+        return rejected(found, f"{reason} (with {where})")
+    found.hidden_face, found.faces_hidden = face, count  # found is this call's own
+    return found
 
 
 def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
@@ -188,7 +185,7 @@ def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: Estimator
     found = estimate(points, gauge.faces_in_view(first, last), options)
     if not found.ok:
         return found
-    ridges = true_corners(gauge, found.R, found.t)[:, 0]
+    ridges = _ridge_x(gauge, found.R, found.t, 0, gauge.n_ridges)
     if first > 0 and ridges[first - 1] > seen[0] + tolerance:
         return rejected(found, f"the pose puts the corner left of face {first} at x {ridges[first - 1] * 1e3:.1f} "
                                f"mm, where the profile has points")
@@ -201,11 +198,24 @@ def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: Estimator
 
 
 def _outside_footprint(found: PoseEstimate, virtual: int, gauge: Gauge, options: EstimatorOptions) -> str:
-    half = np.array([gauge.width, gauge.length]) / 2 + options.footprint_margin
-    mapped = found.corners @ found.R[:, [0, 2]].T + found.t  # each corner [x, 0, z] in G
-    outside = np.any(np.abs(mapped[:, :2]) > half, axis=1)
+    corners, rotation, t = found.corners, found.R, found.t
+    mapped_x = corners[:, 0] * rotation[0, 0] + corners[:, 1] * rotation[0, 2] + t[0]  # each corner [x, 0, z] in G
+    mapped_y = corners[:, 0] * rotation[1, 0] + corners[:, 1] * rotation[1, 2] + t[1]
+    outside = ((np.abs(mapped_x) > gauge.width / 2 + options.footprint_margin) |
+               (np.abs(mapped_y) > gauge.length / 2 + options.footprint_margin))
     outside[virtual] = False  # the virtual corner may lie far out when its faces are nearly parallel
     if not outside.any():
         return ""
     i = int(np.argmax(outside))
-    return reason_outside(i, mapped[i, 0], mapped[i, 1], gauge)
+    return reason_outside(i, mapped_x[i], mapped_y[i], gauge)
+
+
+def _ridge_x(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, first: int, stop: int) -> np.ndarray:
+    """x in F where ridges first..stop - 1 pierce the laser plane (render.true_corners' x, for those alone: a
+    hypothesis checks a few ridges of its pose on every gap profile)."""
+    q, u, w = gauge.q[first:stop], gauge.u[first:stop], gauge.w[first:stop]
+    r2 = rotation[:, 1]
+    along = ((translation[0] - q[:, 0]) * r2[0] + (translation[1] - q[:, 1]) * r2[1] +
+             (translation[2] - q[:, 2]) * r2[2]) / (u * r2[0] + r2[1] + w * r2[2])
+    return ((q[:, 0] + along * u - translation[0]) * rotation[0, 0] + (q[:, 1] + along - translation[1]) *
+            rotation[1, 0] + (q[:, 2] + along * w - translation[2]) * rotation[2, 0])
