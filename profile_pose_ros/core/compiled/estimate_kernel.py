@@ -1,9 +1,9 @@
-"""The estimator compiled with numba: the runtime path of estimate_pose.
+"""Corner detection, the closed form and the refinement: the estimator's only implementation of them, in the
+subset of Python numba compiles (pipeline_kernel.estimate joins them into one call per profile).
 
-Step for step the same algorithm as the readable numpy modules (rdp.py, corners.py, solver.py,
-estimator.py), which remain the reference: tests require both to agree within 1e-12 m. One call does
-detection, closed form, refinement and checks, so a profile costs one dispatch from Python. Everything
-is compiled ahead of the first profile (`warm_up`), and cached on disk where the package is writable.
+The same source runs prebuilt, JIT-compiled or uncompiled (loader.py); tools/numpy_baseline.py is the plain numpy
+baseline Table III times against, not a second implementation to keep equal. Hand-written loops stand where a
+numpy call would allocate or make several passes on the per-profile path.
 """
 from __future__ import annotations
 
@@ -127,9 +127,11 @@ def _lane_sums(a, b):
 def _fit_line(px, pz, first, last, opt, out, k, work, index_work):
     """Fill out[k] = (first, last, slope, x_mean, z_mean, sxx, n_used, sigma, x_min, x_max).
 
-    corners.fit_line's steps. The rejected points are few, so the sums run over every point (vectorised
-    passes, four accumulators) and the rejected points' terms are then taken off. work ((3, >= m) float)
-    and index_work ((2, >= m) int64) are scratch, allocated once per profile by the caller."""
+    Least squares on the segment (its ends trimmed), then, when robust, refits without the points whose residual
+    exceeds max(threshold x 1.4826 x their median, floor), until the rejected set repeats or the passes run out.
+    The rejected points are few, so the sums run over every point (vectorised passes, four accumulators) and the
+    rejected points' terms are then taken off. work ((3, >= m) float) and index_work ((2, >= m) int64) are
+    scratch, allocated once per profile by the caller."""
     count = last - first + 1
     trim = int(opt[O_TRIM] * count)
     lo = first + trim
@@ -900,7 +902,7 @@ def _descend(q, u, w, corners, rot, t, r, weight, max_iterations, polish):
 
 @kernel(**JIT)
 def _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, cov_out, rounds):
-    """Levenberg-Marquardt + Gauss-Newton polish (unless polish is False) on SO(3) x R^3 (see solver.refine).
+    """Levenberg-Marquardt + Gauss-Newton polish (unless polish is False) on SO(3) x R^3.
 
     Returns (status, R, t, residuals, iterations, chi2); cov_out gets the (6, 6) covariance over [delta_F, t] (none
     if cov_out is (0, 0)), chi2 is the residuals' squared Mahalanobis length under the covariance the corners
@@ -1082,15 +1084,16 @@ def _unstack_residuals(r, out):
 
 @kernel(**JIT)
 def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
-    """corners.detect_corners() compiled (the numpy path's stages and the studies call it per profile)."""
+    """Corner detection alone (stages.detect_corners: partial views' hypotheses, studies, the NEES tools)."""
     return _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out)
 
 
 @kernel(**JIT)
 def refine_pose(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations, polish, rot_out, t_out, r_out,
                 cov_out):
-    """solver.refine() compiled, for the basin search and the four-ridge starts. Returns (status, iterations);
-    the pose, the stacked residuals and the (6, 6) covariance over [delta_F, t] go to the *_out arrays."""
+    """The refinement from a given start (stages.refine_pose: the wrong-minimum check, tests). Returns
+    (status, iterations); the pose, the stacked residuals and the (6, 6) covariance over [delta_F, t] go to the
+    *_out arrays."""
     status, rot2, t2, r2, iterations, _ = _refine(q, u, w, corners, rot, t, corner_cov, weighted, max_iterations,
                                                   polish, cov_out, REWEIGHT_ROUNDS)
     rot_out[:, :] = rot2
