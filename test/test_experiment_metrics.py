@@ -158,6 +158,9 @@ def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
     assert by_mode["closed"]["truth"]["y"][-1] == pytest.approx(1e-3, abs=5e-5)  # it got there, really
 
 
+WINDOWS_SLACK_MS = 0.25
+
+
 @pytest.mark.parametrize("composed", [False, True], ids=["processes", "cell_container"])
 def test_the_latency_budget_reads_every_stage_from_the_nodes(tmp_path, composed: bool) -> None:
     """profile_pose latency's default observer: each node's own timing, from its diagnostics. Composed,
@@ -173,7 +176,13 @@ def test_the_latency_budget_reads_every_stage_from_the_nodes(tmp_path, composed:
     for name, s in stages.items():
         assert s["n"] > 100, (name, s)  # ~250 profiles in 3 s, each timed at every stage
         assert 0 < s["median"] <= s["p99"] <= s["max"] < 1000, (name, s)
-    assert stages["profile"]["median"] < stages["pose"]["median"] < stages["correction"]["median"]
+    # Every profile reaches each stage after the one before, but each node pools its own windows, which are not
+    # the others': two stages a few tens of microseconds apart (composed, the estimate alone) can swap pooled
+    # medians on a loaded machine (seen: trigger -> profile 2.66 ms, -> pose 2.57 ms). Adjacent stages are held
+    # to that slack, the first and the last (the bridge's send waits for the controller) to their order.
+    medians = [stages[name]["median"] for name in NODE_STAGES]
+    assert all(later > earlier - WINDOWS_SLACK_MS for earlier, later in zip(medians, medians[1:])), medians
+    assert medians[0] < medians[-1], medians
     periods = result["periods"]  # what the arm feels: the controller's periods, and those answered fresh
     assert periods["controller"] == 250 and 0 < periods["answered"] <= periods["armed"] <= periods["controller"] + 50
 
