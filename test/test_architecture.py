@@ -75,7 +75,7 @@ def room(module: str, depth: int) -> str:
 
 def test_the_reader_sees_known_imports(graph) -> None:
     """The graph is read right: an import at module level, one inside a function, and a relative one."""
-    assert "profile_pose_ros.core.model.gauge" in graph["profile_pose_ros.core.estimation.solver"]
+    assert "profile_pose_ros.core.model.gauge" in graph["profile_pose_ros.core.estimation.residuals"]
     assert "profile_pose_ros.core.compiled.estimate_kernel" in graph["profile_pose_ros.core.compiled.loader"]
     assert "profile_pose_ros.core.compiled.loader" in graph["profile_pose_ros.core.wire.profile_cloud"]
 

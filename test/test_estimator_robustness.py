@@ -308,7 +308,7 @@ def test_a_refinement_cut_short_by_its_iteration_limit_is_not_weighted_again(gau
     """Weights are formed again only at a minimum: a round that ends at max_iterations has not reached one,
     and forming them there would buy another max_iterations each time (four-ridge gauges' wrong starts crept
     along their valley for ten rounds of 30, 0.2 ms each)."""
-    from profile_pose_ros.core.estimation.solver import PoseSolution
+    from profile_pose_ros.core.estimation.residuals import PoseSolution
     from profile_pose_ros.core.estimation.stages import detect_corners, refine_pose
     from profile_pose_ros.core.model.rotation import so3_exp
 

@@ -15,7 +15,7 @@ Rooms, each importing only those listed before it:
 from .estimation.corners import CornerOptions, CornerResult
 from .estimation.estimator import estimate_pose, pose_error
 from .estimation.result import EstimatorOptions, PoseEstimate
-from .estimation.solver import PoseSolution, closed_form
+from .estimation.residuals import PoseSolution
 from .estimation.stages import detect_corners
 from .model.gauge import Gauge, GaugeError
 from .model.poses import PoseRange, corners_visible, sample_pose
@@ -23,6 +23,6 @@ from .model.render import DEFAULT_PROFILER, ProfilerModel, render_profile, true_
 
 __all__ = [
     "CornerOptions", "CornerResult", "DEFAULT_PROFILER", "EstimatorOptions", "Gauge", "GaugeError",
-    "PoseEstimate", "PoseRange", "PoseSolution", "ProfilerModel", "closed_form", "corners_visible",
+    "PoseEstimate", "PoseRange", "PoseSolution", "ProfilerModel", "corners_visible",
     "detect_corners", "estimate_pose", "pose_error", "render_profile", "sample_pose", "true_corners",
 ]

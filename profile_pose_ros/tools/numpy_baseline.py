@@ -1,6 +1,6 @@
 """The numpy baseline that Table III compares the runtime path against (profile_pose benchmark), never on
 the runtime path: the method written the straightforward way. numpy RDP and line fits, numpy SVD closed
-form (core.estimation.solver.closed_form), and the refinement of paper eq. (15) with
+form (closed_form here; paper_closed_form is the paper's as printed, for Table I), and the refinement of paper eq. (15) with
 scipy.optimize.least_squares over a unit quaternion and t, with the residuals whitened by their
 covariance so it solves the same problem as the runtime path. Its corner detection is the algorithm of
 the compiled one (compiled/estimate_kernel.py: _detect), step for step; the tests hold the two to the
@@ -18,9 +18,14 @@ from ..core.estimation.corners import (REASON_CORNERS_NOT_INCREASING, REASON_X_N
                                        CornerOptions, CornerResult, LineFit, reason_corner_count,
                                        reason_corner_not_between, reason_steep_segment, reason_too_few_points)
 from ..core.estimation.result import EstimatorOptions
-from ..core.estimation.solver import closed_form, corner_residuals, residual_covariance
+from ..core.estimation.residuals import (REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank,
+                                         residual_covariance)
 from ..core.model.gauge import Gauge
-from ..core.model.rotation import quaternion_xyzw, rotation_from_quaternion_xyzw
+from ..core.model.rotation import nearest_rotation, quaternion_xyzw, rotation_from_quaternion_xyzw
+
+
+class ClosedFormError(ArithmeticError):
+    """The corners do not determine a pose (degenerate geometry)."""
 
 
 def rdp_vertices(points: np.ndarray, epsilon: float) -> np.ndarray:
@@ -176,6 +181,51 @@ def detect_corners(points: np.ndarray, n_corners: int, options: CornerOptions = 
     return CornerResult(True, "", corners, lines, jacobian, rms)
 
 
+def closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
+    """Paper eqs. (9)-(14): solve the stacked 2n x 9 system by SVD, then project onto SE(3). Raises
+    ClosedFormError when the corners do not determine a pose."""
+    a, b = _system(gauge, corners)
+    x, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
+    if rank < 9:
+        raise ClosedFormError(reason_cf_rank(len(corners), rank))
+    return _pose_from_m(gauge, corners, x)
+
+
+def _system(gauge: Gauge, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stacked 2n x 9 system A x = b of eqs. (9)-(10)."""
+    n = len(corners)
+    p = np.column_stack([corners[:, 0], corners[:, 1], np.ones(n)])  # [px, pz, 1]
+    a = np.zeros((2 * n, 9))
+    a[0::2, 0:3] = p
+    a[0::2, 3:6] = -gauge.u[:, None] * p
+    a[1::2, 3:6] = -gauge.w[:, None] * p
+    a[1::2, 6:9] = p
+    b = np.empty(2 * n)
+    b[0::2] = gauge.q[:, 0]
+    b[1::2] = gauge.q[:, 2]
+    return a, b
+
+
+def _pose_from_m(gauge: Gauge, corners: np.ndarray, x: np.ndarray) -> PoseSolution:
+    """Eqs. (12)-(14): rows of M = [r1 r3 t] -> nearest rotation, rescaled translation."""
+    m = x.reshape(3, 3)
+    r1, r3, t_hat = m[:, 0], m[:, 1], m[:, 2]
+    r_hat = np.column_stack([r1, np.cross(r3, r1), r3])
+    norm_hat = np.linalg.norm(r_hat)
+    if not np.isfinite(norm_hat) or norm_hat == 0:
+        raise ClosedFormError(REASON_CF_DEGENERATE)
+    rotation = nearest_rotation(r_hat)
+    translation = np.linalg.norm(rotation) / norm_hat * t_hat
+    return PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation))
+
+
+def paper_closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
+    """Eqs. (9)-(14) exactly as printed, also when the system is rank-deficient (n = 4): the SVD then
+    returns the minimum-norm solution, which is what the paper's Table I reports as failing for n = 4."""
+    a, b = _system(gauge, corners)
+    return _pose_from_m(gauge, corners, np.linalg.lstsq(a, b, rcond=None)[0])
+
+
 def estimate_baseline(points: np.ndarray, gauge: Gauge, options: EstimatorOptions = EstimatorOptions()):
     """(R, t, timings) or (None, None, timings) when detection or the closed form fails."""
     timings = {}
@@ -185,7 +235,10 @@ def estimate_baseline(points: np.ndarray, gauge: Gauge, options: EstimatorOption
     if not found.ok:
         return None, None, timings
     start = time.perf_counter()
-    initial = closed_form(gauge, found.corners)
+    try:
+        initial = closed_form(gauge, found.corners)
+    except ClosedFormError:
+        return None, None, timings
     timings["closed_form"] = time.perf_counter() - start
     start = time.perf_counter()
     sigma_r = residual_covariance(gauge, initial.rotation, found.covariance(options.noise_std or None))

@@ -504,7 +504,7 @@ def _jacobian(u, w, corners, rot, jac):
 
 @kernel(**JIT)
 def _residual_covariance(u, w, rot, corner_cov, out):
-    """out = M C M^T with M block-diagonal, M_i = C_i R[:, (0, 2)] (see solver.residual_covariance)."""
+    """out = M C M^T with M block-diagonal, M_i = C_i R[:, (0, 2)] (see residuals.residual_covariance)."""
     n = u.shape[0]
     m = np.empty((n, 2, 2))
     for i in range(n):

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..estimation.corners import CornerOptions
 from ..estimation.result import ros_covariance
-from ..estimation.solver import residual_covariance, residual_jacobian
+from ..estimation.residuals import residual_covariance, residual_jacobian
 from ..estimation.stages import detect_corners
 from ..model.gauge import Gauge
 from ..model.render import DEFAULT_PROFILER, ProfilerModel, render_profile, shadow_mask, trace_depth

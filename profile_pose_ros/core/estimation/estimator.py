@@ -20,7 +20,7 @@ from ..model.rotation import rotation_angle, so3_log
 from .hidden_face import estimate_past_a_hidden_face, prepare_partial_views
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_ambiguous,
                      reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected)
-from .solver import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
+from .residuals import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
 from .stages import detect_corners, detection_reason, refine_pose
 
 REASON_NO_START = "no real starting pose for the 4-ridge gauge"

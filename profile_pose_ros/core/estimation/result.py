@@ -15,7 +15,7 @@ from ..model.gauge import Gauge
 from ..model.sym3 import largest_eigenvalue
 from .corners import ROBUST_PASSES, CornerOptions
 from .dense import DenseOptions
-from .solver import PoseSolution
+from .residuals import PoseSolution
 
 WEIGHTINGS = ("corner_covariance", "uniform")
 REFINE_MODELS = ("corners", "dense", "auto")

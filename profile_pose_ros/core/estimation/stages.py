@@ -17,7 +17,7 @@ from .corners import (REASON_CORNERS_NOT_INCREASING, REASON_X_NOT_INCREASING, Co
                       reason_too_few_points)
 from .dense import DenseOptions, DenseResult
 from .result import EstimatorOptions
-from .solver import PoseSolution, Refinement
+from .residuals import PoseSolution, Refinement
 
 
 def detection_reason(status: int, info: np.ndarray, n: int, options: CornerOptions) -> str | None:

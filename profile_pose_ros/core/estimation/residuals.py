@@ -1,4 +1,6 @@
-"""Pose from corners: the paper's closed form (eqs. 5-14) and its refinement (eq. 15).
+"""The corner residual of paper eq. (9), its Jacobian and covariance, and the pose types built on it, in numpy:
+for the bound (design/crlb.py), the wrong-minimum check, and the benchmark's baseline. The estimator's own
+closed form and refinement are the compiled kernels' (compiled/estimate_kernel.py).
 
 The corner residual used throughout is the algebraic residual of eq. (9): for corner p = [px, pz] of
 F mapped into G as P = R [px, 0, pz] + t, the x-z offset between P and ridge i at the same y,
@@ -14,7 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from ..model.gauge import Gauge
-from ..model.rotation import nearest_rotation, skew
+from ..model.rotation import skew
 
 
 class RidgeLines(Protocol):
@@ -37,10 +39,6 @@ class PoseSolution:
         return float(np.mean(np.hypot(self.residuals[:, 0], self.residuals[:, 1])))
 
 
-class SolverError(ArithmeticError):
-    """The corners do not determine a pose (degenerate geometry)."""
-
-
 REASON_CF_DEGENERATE = "closed form produced a degenerate rotation"
 
 
@@ -55,50 +53,6 @@ def corner_residuals(gauge: RidgeLines, corners: np.ndarray, rotation: np.ndarra
         mapped[:, 0] - gauge.u * mapped[:, 1] - gauge.q[:, 0],
         mapped[:, 2] - gauge.w * mapped[:, 1] - gauge.q[:, 2],
     ])
-
-
-def closed_form(gauge: RidgeLines, corners: np.ndarray) -> PoseSolution:
-    """Paper eqs. (9)-(14): solve the stacked 2n x 9 system by SVD, then project onto SE(3)."""
-    a, b = _system(gauge, corners)
-    x, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
-    if rank < 9:
-        raise SolverError(reason_cf_rank(len(corners), rank))
-    return _pose_from_m(gauge, corners, x)
-
-
-def _system(gauge: RidgeLines, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The stacked 2n x 9 system A x = b of eqs. (9)-(10)."""
-    n = len(corners)
-    p = np.column_stack([corners[:, 0], corners[:, 1], np.ones(n)])  # [px, pz, 1]
-    a = np.zeros((2 * n, 9))
-    a[0::2, 0:3] = p
-    a[0::2, 3:6] = -gauge.u[:, None] * p
-    a[1::2, 3:6] = -gauge.w[:, None] * p
-    a[1::2, 6:9] = p
-    b = np.empty(2 * n)
-    b[0::2] = gauge.q[:, 0]
-    b[1::2] = gauge.q[:, 2]
-    return a, b
-
-
-def _pose_from_m(gauge: RidgeLines, corners: np.ndarray, x: np.ndarray) -> PoseSolution:
-    """Eqs. (12)-(14): rows of M = [r1 r3 t] -> nearest rotation, rescaled translation."""
-    m = x.reshape(3, 3)
-    r1, r3, t_hat = m[:, 0], m[:, 1], m[:, 2]
-    r_hat = np.column_stack([r1, np.cross(r3, r1), r3])
-    norm_hat = np.linalg.norm(r_hat)
-    if not np.isfinite(norm_hat) or norm_hat == 0:
-        raise SolverError(REASON_CF_DEGENERATE)
-    rotation = nearest_rotation(r_hat)
-    translation = np.linalg.norm(rotation) / norm_hat * t_hat
-    return PoseSolution(rotation, translation, corner_residuals(gauge, corners, rotation, translation))
-
-
-def paper_closed_form(gauge: Gauge, corners: np.ndarray) -> PoseSolution:
-    """Eqs. (9)-(14) exactly as printed, also when the system is rank-deficient (n = 4): the SVD then
-    returns the minimum-norm solution, which is what the paper's Table I reports as failing for n = 4."""
-    a, b = _system(gauge, corners)
-    return _pose_from_m(gauge, corners, np.linalg.lstsq(a, b, rcond=None)[0])
 
 
 def _ridge_rows(gauge: RidgeLines) -> np.ndarray:
