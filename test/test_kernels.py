@@ -79,3 +79,19 @@ def test_tools_compile_the_estimator_before_starting_a_node_only_when_needed(tmp
     monkeypatch.setenv("PROFILE_POSE_KERNEL", "jit")
     prepare_kernel()  # the JIT was asked for: no build
     assert capsys.readouterr().out == "" and not any(tmp_path.iterdir())
+
+
+def test_the_jit_caches_each_version_of_the_kernels_apart(tmp_path):
+    """numba keys a function's cache on its own file: a caller's cached code would outlive an edit to a callee
+    in another file. The kernels' JIT cache is one directory per fingerprint of all their sources, unless the
+    user chose one."""
+    code = ("import numba; from profile_pose_ros.core.compiled import aot, kernel; "
+            "print(numba.config.CACHE_DIR == str(aot.jit_cache()), aot.fingerprint() in numba.config.CACHE_DIR)")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**env, "XDG_CACHE_HOME": str(tmp_path)}).stdout.split()
+    assert out == ["True", "True"] and (tmp_path / "profile_pose_ros" / "jit" / aot.fingerprint()).is_dir()
+    chosen = subprocess.run([sys.executable, "-c", "import numba; from profile_pose_ros.core.compiled import kernel; "
+                             "print(numba.config.CACHE_DIR)"], capture_output=True, text=True, timeout=300,
+                            env={**env, "NUMBA_CACHE_DIR": str(tmp_path / "mine")}).stdout.strip()
+    assert chosen == str(tmp_path / "mine")

@@ -32,12 +32,28 @@ SOURCES = ("compiled/estimate_kernel.py", "compiled/search_kernel.py", "compiled
            "model/sym3.py")
 
 
+def _user_cache() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")) / "profile_pose_ros"
+
+
 def cache_root() -> Path:
     explicit = os.environ.get("PROFILE_POSE_AOT_DIR")
-    if explicit:
-        return Path(explicit)
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "profile_pose_ros" / "aot"
+    return Path(explicit) if explicit else _user_cache() / "aot"
+
+
+def jit_cache() -> Path:
+    """Where numba's JIT keeps the kernels of these sources (kernel.py points it here unless NUMBA_CACHE_DIR is
+    set): one directory per fingerprint, because numba keys a function's cache on its own file alone, and a
+    caller (pipeline_kernel) would run its stale machine code after a callee's file (dense_kernel) changed.
+    Marked in use, and the directories of other sources unused for a month removed, as the prebuilt ones."""
+    directory = _user_cache() / "jit" / fingerprint()
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        os.utime(directory)
+        prune(directory.parent, keep=directory)
+    except OSError:
+        pass
+    return directory
 
 
 @functools.cache
@@ -111,9 +127,7 @@ def ensure_built(timeout: float = 900.0) -> Path | None:
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
         scratch = Path(tempfile.mkdtemp(prefix=target.name + ".", dir=target.parent))
-        # numba's JIT cache of a kernel is keyed on its own file only: one that calls a kernel of another file
-        # (pipeline_kernel -> dense_kernel) would be built from its stale cache after that file changed. The
-        # build compiles every kernel afresh, with a cache of its own.
+        # the build compiles every kernel afresh, with a JIT cache of its own (see jit_cache)
         fresh = {**os.environ, "NUMBA_CACHE_DIR": str(scratch / JIT_CACHE)}
         done = subprocess.run([sys.executable, "-m", "profile_pose_ros.core.compiled.aot", "build", str(scratch)],
                               capture_output=True, text=True, timeout=timeout, env=fresh)

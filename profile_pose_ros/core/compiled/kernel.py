@@ -3,11 +3,18 @@ core still runs, uncompiled, with numpy alone (DESIGN.md: studies and notebooks 
 """
 from __future__ import annotations
 
+import os
+
 try:
+    from numba import config as _numba_config
     from numba import njit as _njit
 except ImportError:  # the core without numba: every kernel runs as plain Python
     _njit = None
+else:
+    if not os.environ.get("NUMBA_CACHE_DIR"):  # numba reads it as each kernel is decorated, after this
+        from .aot import jit_cache
 
+        _numba_config.CACHE_DIR = str(jit_cache())
 
 
 def kernel(**options):
