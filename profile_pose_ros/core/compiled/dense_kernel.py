@@ -18,9 +18,10 @@ from .estimate_kernel import (CURVED_ABOVE, _add_curvature_term, _cholesky, _cho
 from .kernel import kernel
 
 STEP_TOLERANCE = 1e-13  # stop once no step component exceeds it (m, rad): converged to rounding
-# or once a step lowers chi-square by less than this: it moved the pose by a hundred-thousandth of its own
-# standard deviation (Mahalanobis), and Gauss-Newton's next step would be smaller still
-STEP_CHI2 = 1e-10
+# or once a step lowers chi-square by less than this: it moved the pose by a hundredth of its own standard
+# deviation (Mahalanobis), and Gauss-Newton's next step, quadratically smaller, would move it by far less. A
+# tighter bound buys one more pass over the points for a change no statistic of the pose can see.
+STEP_CHI2 = 1e-4
 # columns of the per-face depth model (_face_models)
 A, INV_B, C, ALPHA, TX, TY, TZ = range(7)
 
