@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from profile_pose_ros.core import EstimatorOptions, render_profile, sample_pose
-from profile_pose_ros.core.compiled import aot
+from profile_pose_ros.core.compiled import aot, caches
 from profile_pose_ros.core.compiled import pipeline_kernel
 from profile_pose_ros.core.design.gauge_design import random_gauge
 from profile_pose_ros.core.estimation.result import position_sigma
@@ -62,7 +62,7 @@ def test_prune_removes_builds_unused_for_a_month_and_dead_scratch_only(tmp_path)
         (tmp_path / name).mkdir()
         os.utime(tmp_path / name, (now - age, now - age))
     (tmp_path / "a_file").write_text("not a build")
-    removed = aot.prune(tmp_path, keep=tmp_path / "keep", now=now)
+    removed = caches.prune(tmp_path, keep=tmp_path / "keep", now=now)
     assert sorted(p.name for p in removed) == ["aaaa", "cccc.x1"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "bbbb", "dddd.x2", "keep"]
 
@@ -85,12 +85,12 @@ def test_the_jit_caches_each_version_of_the_kernels_apart(tmp_path):
     """numba keys a function's cache on its own file: a caller's cached code would outlive an edit to a callee
     in another file. The kernels' JIT cache is one directory per fingerprint of all their sources, unless the
     user chose one."""
-    code = ("import numba; from profile_pose_ros.core.compiled import aot, kernel; "
-            "print(numba.config.CACHE_DIR == str(aot.jit_cache()), aot.fingerprint() in numba.config.CACHE_DIR)")
+    code = ("import numba; from profile_pose_ros.core.compiled import caches, kernel; "
+            "print(numba.config.CACHE_DIR == str(caches.jit_cache()), caches.fingerprint() in numba.config.CACHE_DIR)")
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                          env={**env, "XDG_CACHE_HOME": str(tmp_path)}).stdout.split()
-    assert out == ["True", "True"] and (tmp_path / "profile_pose_ros" / "jit" / aot.fingerprint()).is_dir()
+    assert out == ["True", "True"] and (tmp_path / "profile_pose_ros" / "jit" / caches.fingerprint()).is_dir()
     chosen = subprocess.run([sys.executable, "-c", "import numba; from profile_pose_ros.core.compiled import kernel; "
                              "print(numba.config.CACHE_DIR)"], capture_output=True, text=True, timeout=300,
                             env={**env, "NUMBA_CACHE_DIR": str(tmp_path / "mine")}).stdout.strip()

@@ -12,7 +12,7 @@ except ImportError:  # the core without numba: every kernel runs as plain Python
     _njit = None
 else:
     if not os.environ.get("NUMBA_CACHE_DIR"):  # numba reads it as each kernel is decorated, after this
-        from .aot import jit_cache
+        from .caches import jit_cache
 
         _numba_config.CACHE_DIR = str(jit_cache())
 
