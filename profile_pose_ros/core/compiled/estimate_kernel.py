@@ -288,10 +288,9 @@ def _drop_spikes(px, pz, n, threshold):
 @kernel(**JIT)
 def profile_gaps(points, pitches, gaps):
     """The spacing of the valid points' x (the median step) and, in gaps (rows (x before, x after), widest
-    first), up to gaps.shape[0] of the steps wider than `pitches` times it; returns (valid points, gaps found,
-    spacing). A
-    partial view's first question, in one pass where numpy's valid-point mask, diff and median took three
-    (hidden_face.py)."""
+    first), up to gaps.shape[0] of the steps wider than `pitches` spacings; returns (valid points, gaps found,
+    spacing). A partial view's first question (hidden_face.py), in one pass where numpy's valid-point mask,
+    diff and median took three."""
     n_all = points.shape[0]
     steps = np.empty(max(n_all - 1, 0))
     xs = np.empty(n_all)

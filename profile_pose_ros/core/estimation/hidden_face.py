@@ -50,7 +50,8 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     """The pose with one or two adjacent faces hidden by a gap or faces out of view at the ends, or a refusal
     saying why not, or None when the profile looks like none of these: the caller's refusal stands."""
     n = gauge.n_ridges
-    if n < MIN_RIDGES + 1 or points.ndim != 2 or points.shape[1] != 2:  # the gauge without a face must keep MIN_RIDGES
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if n < MIN_RIDGES + 1 or points.ndim != 2 or points.shape[1] != 2:  # without a face n - 1 >= MIN_RIDGES remain
         return None
     valid, pitch, gaps = profile_gaps(points)
     if valid < 3:
