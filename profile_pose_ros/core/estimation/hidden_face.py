@@ -27,7 +27,7 @@ from ..compiled.loader import kernels
 from ..model.gauge import Gauge, GaugeError
 from .corners import CornerResult
 from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
-from .stages import detect_corners
+from .stages import detect_corners, detect_with
 
 # a run between two valid points wider than this many point pitches is a gap, not the profiler's spacing
 GAP_PITCHES = 3.0
@@ -70,7 +70,7 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
                 continue
             if relaxed[k] is None:
                 relaxed[k] = _options_for_a_gap(options, before, after)
-            detection = detect_corners(points, n - count, relaxed[k].corners)
+            detection = detect_with(points, n - count, relaxed[k].kernel_vector, relaxed[k].corners)
             faces_found[k] = len(detection.lines) if detection.ok else detection.faces_found or None
             found = _with_faces_hidden_in_gap(points, gauge, options, relaxed[k], detection, estimate, before, after,
                                               tolerance, count)
@@ -170,8 +170,8 @@ def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: Estimat
         return replace(found, reason=f"{found.reason} (with {where})")
     hidden = _ridge_x(gauge, found.R, found.t, face - 1, face + count)  # the ridges bounding them
     reason = _outside_footprint(found, virtual, gauge, options)
-    if not reason and (hidden.min() < before - tolerance or hidden.max() > after + tolerance):
-        reason = (f"the pose puts {faces} at x {hidden.min() * 1e3:.1f}..{hidden.max() * 1e3:.1f} mm, where "
+    if not reason and (min(hidden) < before - tolerance or max(hidden) > after + tolerance):
+        reason = (f"the pose puts {faces} at x {min(hidden) * 1e3:.1f}..{max(hidden) * 1e3:.1f} mm, where "
                   f"the profile has points")
     if reason:
         return rejected(found, f"{reason} (with {where})")
@@ -199,24 +199,27 @@ def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: Estimator
 
 
 def _outside_footprint(found: PoseEstimate, virtual: int, gauge: Gauge, options: EstimatorOptions) -> str:
-    corners, rotation, t = found.corners, found.R, found.t
-    mapped_x = corners[:, 0] * rotation[0, 0] + corners[:, 1] * rotation[0, 2] + t[0]  # each corner [x, 0, z] in G
-    mapped_y = corners[:, 0] * rotation[1, 0] + corners[:, 1] * rotation[1, 2] + t[1]
-    outside = ((np.abs(mapped_x) > gauge.width / 2 + options.footprint_margin) |
-               (np.abs(mapped_y) > gauge.length / 2 + options.footprint_margin))
-    outside[virtual] = False  # the virtual corner may lie far out when its faces are nearly parallel
-    if not outside.any():
-        return ""
-    i = int(np.argmax(outside))
-    return reason_outside(i, mapped_x[i], mapped_y[i], gauge)
+    """Why the first real corner of the pose lies off the gauge's footprint, or "" (the virtual corner may lie far
+    out when its faces are nearly parallel). In plain floats, as _ridge_x."""
+    (r00, _, r02), (r10, _, r12), _ = found.R.tolist()
+    t0, t1, _ = found.t.tolist()
+    half_w, half_l = gauge.width / 2 + options.footprint_margin, gauge.length / 2 + options.footprint_margin
+    for i, (x, z) in enumerate(found.corners.tolist()):
+        mapped_x, mapped_y = x * r00 + z * r02 + t0, x * r10 + z * r12 + t1  # the corner [x, 0, z] in G
+        if i != virtual and (abs(mapped_x) > half_w or abs(mapped_y) > half_l):
+            return reason_outside(i, mapped_x, mapped_y, gauge)
+    return ""
 
 
-def _ridge_x(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, first: int, stop: int) -> np.ndarray:
+def _ridge_x(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray, first: int, stop: int) -> list[float]:
     """x in F where ridges first..stop - 1 pierce the laser plane (render.true_corners' x, for those alone: a
-    hypothesis checks a few ridges of its pose on every gap profile)."""
-    q, u, w = gauge.q[first:stop], gauge.u[first:stop], gauge.w[first:stop]
-    r2 = rotation[:, 1]
-    along = ((translation[0] - q[:, 0]) * r2[0] + (translation[1] - q[:, 1]) * r2[1] +
-             (translation[2] - q[:, 2]) * r2[2]) / (u * r2[0] + r2[1] + w * r2[2])
-    return ((q[:, 0] + along * u - translation[0]) * rotation[0, 0] + (q[:, 1] + along - translation[1]) *
-            rotation[1, 0] + (q[:, 2] + along * w - translation[2]) * rotation[2, 0])
+    hypothesis checks a few ridges of its pose on every gap profile; in plain floats, which numpy's per-call
+    cost outweighs at this size)."""
+    (r00, r01, _), (r10, r11, _), (r20, r21, _) = rotation.tolist()
+    t0, t1, t2 = translation.tolist()
+    xs = []
+    for (q0, q1, q2), u, w in zip(gauge.q[first:stop].tolist(), gauge.u[first:stop].tolist(),
+                                  gauge.w[first:stop].tolist()):
+        along = ((t0 - q0) * r01 + (t1 - q1) * r11 + (t2 - q2) * r21) / (u * r01 + r11 + w * r21)
+        xs.append((q0 + along * u - t0) * r00 + (q1 + along - t1) * r10 + (q2 + along * w - t2) * r20)
+    return xs
