@@ -1,9 +1,9 @@
 """The numpy baseline that Table III compares the runtime path against (profile_pose benchmark), never on
 the runtime path: the method written the straightforward way. numpy RDP and line fits, numpy SVD closed
-form (closed_form here; paper_closed_form is the paper's as printed, for Table I), and the refinement of paper eq. (15) with
-scipy.optimize.least_squares over a unit quaternion and t, with the residuals whitened by their
-covariance so it solves the same problem as the runtime path. Its corner detection is the algorithm of
-the compiled one (compiled/estimate_kernel.py: _detect), step for step; the tests hold the two to the
+form (closed_form; paper_closed_form is the paper's as printed, for Table I), and the refinement of paper
+eq. (15) with scipy.optimize.least_squares over a unit quaternion and t, with the residuals whitened by
+their covariance so it solves the same problem as the runtime path. Its corner detection is the algorithm
+of the compiled one (compiled/estimate_kernel.py: _detect), step for step; the tests hold the two to the
 same corners."""
 from __future__ import annotations
 
