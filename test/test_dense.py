@@ -81,10 +81,32 @@ def test_the_radix_median_is_numpys_median():
     assert _median(np.array([1.0, 2.0]), 2, hist, pool) == 1.5  # the two middle values in adjacent binades
 
 
+def _face_sums(points: np.ndarray, face_of: np.ndarray, residual: np.ndarray, n_faces: int) -> np.ndarray:
+    """Each face's sums (count, u, u^2, r, u r, x0; u = x - x0, x0 its first point) over the points face_of
+    gives it, from the points one by one: dense_kernel._face_normal_equations' input, as a reference."""
+    sums = np.zeros((n_faces, 6))
+    for face in range(n_faces):
+        on = face_of == face
+        if on.any():
+            u, r = points[on, 0] - points[on, 0][0], residual[on]
+            sums[face] = len(u), u.sum(), (u * u).sum(), r.sum(), (u * r).sum(), points[on, 0][0]
+    return sums
+
+
+def _normal_equations(sums: np.ndarray, model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from profile_pose_ros.core.compiled.dense_kernel import _face_normal_equations
+
+    hessian, gradient = np.empty((6, 6)), np.empty(6)
+    _face_normal_equations(model, sums, hessian, gradient)
+    return hessian, gradient
+
+
 def test_each_point_is_classified_as_testing_every_ridge_would():
     """dense_kernel._classify walks from the previous point's face and measures the clearance to that face's
     two ridges only: the same faces, the same cut and the same residuals as testing every ridge, on gauges of
-    4 to 10 ridges, in poses that put points off the footprint and on the ridges' margins."""
+    4 to 10 ridges, in poses that put points off the footprint and on the ridges' margins. Its face sums, taken
+    over every usable point with those beyond the cut taken out again, give the normal equations of the kept
+    points alone."""
     from profile_pose_ros.core.compiled.dense_kernel import _classify, _face_models
     from profile_pose_ros.core.design.gauge_design import random_gauge
     from profile_pose_ros.core.estimation.dense import DenseOptions
@@ -102,9 +124,11 @@ def test_each_point_is_classified_as_testing_every_ridge_would():
             _face_models(normals, offsets, rotation, t, model)
             count = len(points)
             face_of, residual, spread = np.empty(count, np.int64), np.empty(count), np.empty(count)
-            kept = _classify(points, ridge_q, ridge_u, gauge.width, gauge.length, rotation, t, options.ridge_margin,
-                             options.outlier_threshold, options.min_outlier_floor, model, face_of, residual, spread,
-                             np.empty(2048, np.int64), np.empty(count, np.int64))
+            sums = np.empty((n + 1, 6))
+            kept, squares = _classify(points, ridge_q, ridge_u, gauge.width, gauge.length, rotation, t,
+                                      options.ridge_margin, options.outlier_threshold, options.min_outlier_floor,
+                                      model, face_of, residual, spread, np.empty(2048, np.int64),
+                                      np.empty(count, np.int64), sums)
             mapped = t[:2] + points[:, :1] * rotation[:2, 0] + points[:, 1:] * rotation[:2, 2]
             ridges = ridge_q + ridge_u * mapped[:, 1:]
             inside = (np.abs(mapped[:, 0]) < gauge.width / 2) & (np.abs(mapped[:, 1]) < gauge.length / 2)
@@ -119,13 +143,17 @@ def test_each_point_is_classified_as_testing_every_ridge_would():
             assert kept == (expected >= 0).sum()
             assert np.array_equal(face_of, expected)
             assert np.allclose(residual[expected >= 0], r[expected >= 0], rtol=0, atol=1e-15)
+            assert squares == pytest.approx((r[expected >= 0] ** 2).sum(), rel=1e-9)
+            hessian, gradient = _normal_equations(sums, model)
+            reference = _normal_equations(_face_sums(points, expected, r, n + 1), model)
+            assert np.allclose(hessian, reference[0], rtol=1e-9, atol=0)
+            assert np.allclose(gradient, reference[1], rtol=1e-9, atol=1e-9 * np.abs(reference[1]).max())
 
 
 def test_the_valley_term_from_the_faces_sums_is_the_one_from_every_points_second_derivative():
     """dense_kernel._add_valley_curvature takes J^T p'' from each face's sums (p'' is linear in x on a face):
     the same term as differencing every kept point's predicted depth at +-s v and summing over the points."""
-    from profile_pose_ros.core.compiled.dense_kernel import (C, INV_B, A, _add_valley_curvature, _face_models,
-                                                             _normal_equations)
+    from profile_pose_ros.core.compiled.dense_kernel import C, INV_B, A, _add_valley_curvature, _face_models
     from profile_pose_ros.core.compiled.estimate_kernel import _add_curvature_term, _moved_pose, _weakest_direction
     from profile_pose_ros.core.design.gauge_design import random_gauge
 
@@ -138,10 +166,10 @@ def test_the_valley_term_from_the_faces_sums_is_the_one_from_every_points_second
         points = np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
         face_of = np.clip(np.searchsorted(np.sort(rng.uniform(points[0, 0], points[-1, 0], n)), points[:, 0]), 0, n)
         face_of[rng.random(len(points)) < 0.1] = -1  # points cut
-        model, sums = np.empty((n + 1, 7)), np.empty((n + 1, 6))
+        model = np.empty((n + 1, 7))
         _face_models(normals, offsets, rotation, t, model)
-        hessian, gradient = np.empty((6, 6)), np.empty(6)
-        _normal_equations(points, face_of, rng.normal(size=len(points)), model, sums, hessian, gradient)
+        sums = _face_sums(points, face_of, rng.normal(size=len(points)), n + 1)
+        hessian, _ = _normal_equations(sums, model)
         cov = np.linalg.inv(hessian) * 1e-9  # a poorly determined pose's scale
         expected = cov.copy()
         v = np.empty(6)
@@ -153,8 +181,7 @@ def test_the_valley_term_from_the_faces_sums_is_the_one_from_every_points_second
             _moved_pose(rotation, t, v, sign * np.sqrt(variance), moved, shifted)
             _face_models(normals, offsets, moved, shifted, moved_model)
             second += (depth(moved_model) - depth(model)) / variance
-        curved = np.empty(6)
-        _normal_equations(points, face_of, second, model, np.empty_like(sums), hessian, curved)
+        hessian, curved = _normal_equations(_face_sums(points, face_of, second, n + 1), model)
         _add_curvature_term(expected, hessian, curved, v, variance)
         _add_valley_curvature(normals, offsets, rotation, t, sums, cov)
         assert not np.allclose(expected, np.linalg.inv(hessian) * 1e-9, rtol=1e-6, atol=0)  # the term is there

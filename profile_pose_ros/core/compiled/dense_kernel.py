@@ -18,10 +18,12 @@ from .estimate_kernel import (CURVED_ABOVE, _add_curvature_term, _cholesky, _cho
 from .kernel import kernel
 
 STEP_TOLERANCE = 1e-13  # stop once no step component exceeds it (m, rad): converged to rounding
-# or once a step lowers chi-square by less than this: it moved the pose by a hundredth of its own standard
-# deviation (Mahalanobis), and Gauss-Newton's next step, quadratically smaller, would move it by far less. A
-# tighter bound buys one more pass over the points for a change no statistic of the pose can see.
-STEP_CHI2 = 1e-4
+# or once a step lowers chi-square by less than this: it moved the pose by a tenth of its own standard
+# deviation (Mahalanobis), and Gauss-Newton's next step, quadratically smaller, would move it by far less; the
+# normal equations formed before that step describe the final pose's uncertainty as well as any formed after
+# it. A tighter bound buys one more pass over the points for a change no statistic of the pose can see
+# (docs/estimator.md, Dense refinement).
+STEP_CHI2 = 1e-2
 # columns of the per-face depth model (_face_models)
 A, INV_B, C, ALPHA, TX, TY, TZ = range(7)
 
@@ -104,19 +106,26 @@ def _ridges_ordered(ridge_q, ridge_u, half_l):
 
 @kernel(**JIT)
 def _classify(points, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor, model, face_of, residual,
-              spread, hist, pool):
+              spread, hist, pool, sums):
     """Each point's face and depth residual, face_of -1 where the point is unusable (off the footprint, within
     `margin` of a ridge or an edge) or beyond the robust cut (threshold robust standard deviations, at least
-    `floor`); returns how many are kept. spread, hist and pool are scratch space for the median.
+    `floor`), and each face's sums over its kept points (_face_normal_equations' columns); returns (points
+    kept, the sum of their squared residuals). spread, hist and pool are scratch space for the median.
 
     A point's face is the number of ridges left of it. With the ridges in order that is found by walking from
     the previous point's face (the profile crosses the faces in turn, so the walk is a step or none), and the
     nearest ridges are the face's two: the same face and clearance as testing every ridge, at a fixed cost
-    per point instead of one that grows with the ridges."""
+    per point instead of one that grows with the ridges.
+
+    The sums are taken over every usable point as it is classified and the few beyond the cut taken out once
+    the cut is known: one pass over the points instead of a second one to sum the kept (a third of a dense
+    pass's time)."""
     n_ridges = ridge_u.shape[0]
     half_w = width / 2
     half_l = length / 2
     ordered = _ridges_ordered(ridge_q, ridge_u, half_l)
+    sums[:, :] = 0.0
+    squares = 0.0
     face = 0
     usable = 0
     for i in range(points.shape[0]):
@@ -150,8 +159,9 @@ def _classify(points, ridge_q, ridge_u, width, length, rot, t, margin, threshold
         residual[i] = r
         spread[usable] = abs(r)
         usable += 1
+        squares += _add_to_sums(sums, face, x, r, 1.0)
     if usable == 0:
-        return 0
+        return 0, 0.0
     limit = max(threshold * 1.4826 * _median(spread, usable, hist, pool), floor)
     kept = 0
     for i in range(points.shape[0]):
@@ -159,38 +169,31 @@ def _classify(points, ridge_q, ridge_u, width, length, rot, t, margin, threshold
             if abs(residual[i]) <= limit:
                 kept += 1
             else:
+                squares -= _add_to_sums(sums, face_of[i], points[i, 0], residual[i], -1.0)
                 face_of[i] = -1
-    return kept
+    return kept, squares
 
 
 @kernel(**JIT)
-def _normal_equations(points, face_of, residual, model, sums, hessian, gradient):
-    """hessian = J^T J and gradient = J^T r over the kept points; returns sum r^2. Per face the Jacobian row
-    is B [1, u] with u = x - x0 (x0: the face's first kept point, so the sums do not cancel), hence
-    J^T J = sum over faces of B [[S0, S1], [S1, S2]] B^T and J^T r = B [R0, R1]."""
-    sums[:, :] = 0.0
-    squares = 0.0
-    for i in range(points.shape[0]):
-        f = face_of[i]
-        if f < 0:
-            continue
-        if sums[f, 0] == 0.0:
-            sums[f, 5] = points[i, 0]
-        u = points[i, 0] - sums[f, 5]
-        r = residual[i]
-        sums[f, 0] += 1.0
-        sums[f, 1] += u
-        sums[f, 2] += u * u
-        sums[f, 3] += r
-        sums[f, 4] += u * r
-        squares += r * r
-    _face_normal_equations(model, sums, hessian, gradient)
-    return squares
+def _add_to_sums(sums, face, x, r, sign):
+    """Add (sign 1) or take out (-1) one point of `face` in its sums; returns r^2. The sums are over u = x - x0,
+    x0 the face's first point (sums[face, 5]), so that they do not cancel."""
+    if sums[face, 0] == 0.0:
+        sums[face, 5] = x
+    u = x - sums[face, 5]
+    sums[face, 0] += sign
+    sums[face, 1] += sign * u
+    sums[face, 2] += sign * u * u
+    sums[face, 3] += sign * r
+    sums[face, 4] += sign * u * r
+    return r * r
 
 
 @kernel(**JIT)
 def _face_normal_equations(model, sums, hessian, gradient):
-    """hessian and gradient from the per-face sums (_normal_equations' columns: S0, S1, S2, R0, R1, x0)."""
+    """hessian = J^T J and gradient = J^T r from the per-face sums (columns S0, S1, S2, R0, R1, x0: the count,
+    u, u^2, r and u r summed over the face's points, u = x - x0). Per face the Jacobian row is B [1, u], hence
+    J^T J = sum over faces of B [[S0, S1], [S1, S2]] B^T and J^T r = B [R0, R1]."""
     n_faces = model.shape[0]
     hessian[:, :] = 0.0
     gradient[:] = 0.0
@@ -228,9 +231,10 @@ def _linearise(pts, normals, offsets, ridge_q, ridge_u, width, length, rot, t, m
     """One pass over the points at (rot, t): faces, residuals, the robust cut and the normal equations.
     Returns (points kept, the sum of their squared residuals); the rest are scratch and outputs."""
     _face_models(normals, offsets, rot, t, model)
-    count = _classify(pts, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor, model, face_of, residual,
-                      spread, hist, pool)
-    return count, _normal_equations(pts, face_of, residual, model, sums, hessian, gradient)
+    count, squares = _classify(pts, ridge_q, ridge_u, width, length, rot, t, margin, threshold, floor, model, face_of,
+                               residual, spread, hist, pool, sums)
+    _face_normal_equations(model, sums, hessian, gradient)
+    return count, squares
 
 
 @kernel(**JIT)
