@@ -47,10 +47,10 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
 
 
 def _estimate_every_stage(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
-                          surface: Gauge | None = None) -> PoseEstimate:
+                          surface: Gauge | None = None, vector: np.ndarray | None = None) -> PoseEstimate:
     """surface: the gauge whose faces the dense refinement fits (gauge itself unless gauge is one without a
-    face)."""
-    return _checked_precision(_estimate_in_one_call(points, gauge, options, surface), options)
+    face); vector: options' kernel vector with the kernel-only settings a partial view adds (hidden_face.py)."""
+    return _checked_precision(_estimate_in_one_call(points, gauge, options, surface, vector), options)
 
 
 def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> PoseEstimate:
@@ -98,7 +98,7 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
 
 
 def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
-                          surface: Gauge | None = None) -> PoseEstimate:
+                          surface: Gauge | None = None, vector: np.ndarray | None = None) -> PoseEstimate:
     """The whole estimate in a single compiled call (corners, closed form or four-ridge starts, refinement,
     basin search, checks)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
@@ -113,7 +113,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     try:
         status, iterations, fit_rms, error, cf_error, sigma, search_starts = kernels().estimate(
             points, gauge.q, gauge.u, gauge.w, *(surface or gauge).kernel_faces, gauge.width, gauge.length,
-            options.kernel_vector, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
+            options.kernel_vector if vector is None else vector, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
     except np.linalg.LinAlgError as exc:
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
     timings = {"total": time.perf_counter() - start}

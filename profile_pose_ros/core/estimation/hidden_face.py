@@ -23,6 +23,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..compiled import codes
 from ..compiled.loader import kernels
 from ..model.gauge import Gauge, GaugeError
 from .corners import CornerResult
@@ -58,7 +59,8 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
         return None
     # a face that showed fewer points than a segment needs would not have been found either
     tolerance = options.corners.min_segment_points * pitch
-    relaxed: list[EstimatorOptions | None] = [None] * len(gaps)  # made when a gap's detection is first needed
+    relaxed = _unbounded(options)
+    vectors: list[np.ndarray | None] = [None] * len(gaps)  # made when a gap's detection is first needed
     # the faces a gap's detection finds do not depend on how many corners it was asked for (only whether that
     # is the count found): once known, the hypotheses that count cannot meet need no detection of their own
     faces_found: list[int | None] = [None] * len(gaps)
@@ -68,12 +70,12 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
         for k, (before, after) in enumerate(gaps):
             if faces_found[k] is not None and faces_found[k] != n + 1 - count:
                 continue
-            if relaxed[k] is None:
-                relaxed[k] = _options_for_a_gap(options, before, after)
-            detection = detect_with(points, n - count, relaxed[k].kernel_vector, relaxed[k].corners)
+            if vectors[k] is None:
+                vectors[k] = _vector_for_a_gap(relaxed, before, after)
+            detection = detect_with(points, n - count, vectors[k], relaxed.corners)
             faces_found[k] = len(detection.lines) if detection.ok else detection.faces_found or None
-            found = _with_faces_hidden_in_gap(points, gauge, options, relaxed[k], detection, estimate, before, after,
-                                              tolerance, count)
+            found = _with_faces_hidden_in_gap(points, gauge, options, relaxed, vectors[k], detection, estimate,
+                                              before, after, tolerance, count)
             if found is not None:
                 return found
     # faces out of view at the ends (the gauge near the edge of the profiler's field, or a gap over the end of
@@ -124,16 +126,22 @@ def _gauge_without(gauge: Gauge, face: int, count: int) -> Gauge | None:
         return None
 
 
-def _options_for_a_gap(options: EstimatorOptions, before: float, after: float) -> EstimatorOptions:
-    """options for the gauge without the faces the gap (before, after) hides. The virtual corner may lie far
-    outside the footprint (faces nearly parallel): that check is made for the real corners only
-    (_outside_footprint). Its residual may be large and still within its (extrapolated) covariance: the
-    consistency test, which weighs it so, stands for the absolute reprojection bound."""
-    return _unbounded(options).with_changes(virtual_corner_gap=0.5 * (before + after))
+def _vector_for_a_gap(relaxed: EstimatorOptions, before: float, after: float) -> np.ndarray:
+    """The kernel vector of `relaxed` (_unbounded) with the gap (before, after) marked: its detection does not
+    merge the faces either side of it, and the corner between them is virtual. Set in a copy of the vector
+    rather than made as an options object, whose validation and packing cost more than the rest of a
+    hypothesis' Python on every gap profile."""
+    vector = relaxed.kernel_vector.copy()
+    vector[codes.O_GAP] = 0.5 * (before + after)
+    return vector
 
 
 @lru_cache(maxsize=8)
 def _unbounded(options: EstimatorOptions) -> EstimatorOptions:
+    """options for the gauge without the faces a gap hides. The virtual corner may lie far outside the
+    footprint (faces nearly parallel): that check is made for the real corners only (_outside_footprint). Its
+    residual may be large and still within its (extrapolated) covariance: the consistency test, which weighs
+    it so, stands for the absolute reprojection bound."""
     return replace(options, footprint_margin=math.inf, max_reprojection_error=math.inf)
 
 
@@ -147,10 +155,12 @@ def _without_search(options: EstimatorOptions) -> EstimatorOptions:
 
 
 def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
-                              relaxed: EstimatorOptions, detection: CornerResult, estimate: Callable, before: float,
-                              after: float, tolerance: float, count: int) -> PoseEstimate | None:
+                              relaxed: EstimatorOptions, vector: np.ndarray, detection: CornerResult,
+                              estimate: Callable, before: float, after: float, tolerance: float,
+                              count: int) -> PoseEstimate | None:
     """The pose with `count` adjacent faces hidden by the gap (before, after), or None when the faces found
-    either side of it (detection, with the relaxed options) do not leave that many out."""
+    either side of it (detection, with the relaxed options and the gap's kernel vector) do not leave that
+    many out."""
     n = gauge.n_ridges
     if not detection.ok:
         return None
@@ -165,7 +175,7 @@ def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: Estimat
     if without is None:
         return PoseEstimate(False, f"corner detection: {where}, but faces {face - 1} and {face + count} are parallel: "
                                    f"without a corner between them the faces seen do not determine the pose")
-    found = estimate(points, without, relaxed)
+    found = estimate(points, without, relaxed, vector=vector)
     if not found.ok:
         return replace(found, reason=f"{found.reason} (with {where})")
     hidden = _ridge_x(gauge, found.R, found.t, face - 1, face + count)  # the ridges bounding them
