@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from profile_pose_ros.core import estimate_pose, pose_error, render_profile, sample_pose, true_corners
 from profile_pose_ros.core.estimation.estimator import pose_nees
 from profile_pose_ros.core.estimation.hidden_face import GAP_PITCHES, profile_gaps
-from profile_pose_ros.core.compiled.estimate_kernel import _median5
+from profile_pose_ros.core.compiled.estimate_kernel import _drop_spikes, _median5
 from profile_pose_ros.core.model.gauge import Gauge, GaugeError
 from profile_pose_ros.core.design.gauge_design import random_gauge
 from profile_pose_ros.resources import config_path
@@ -19,6 +19,29 @@ finite = st.floats(-1e3, 1e3, allow_nan=False)
 @given(st.lists(finite, min_size=5, max_size=5))
 def test_median_of_five_is_the_median(values):
     assert _median5(*values) == np.median(values)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(5, 300), st.lists(st.tuples(st.integers(0, 299), st.floats(-2e-3, 2e-3)), max_size=8),
+       st.floats(0.0, 2e-5))
+def test_spikes_are_the_points_off_the_median_of_their_five(n, spikes, noise):
+    """The compiled filter (which skips a profile without suspects and moves points only from the first spike
+    on) against numpy: a point is dropped when it lies half the threshold off the line through its neighbours
+    and the threshold off the median of the five around it; the two at either end never are."""
+    threshold = 1.5e-4
+    x = np.arange(n) * 5e-5
+    z = 0.4 + 0.7 * np.abs(x - x[n // 2]) + np.random.default_rng(n).normal(0.0, noise, n)
+    for index, height in spikes:
+        z[index % n] += height
+    inner = np.arange(2, n - 2)
+    off_line = np.abs(z[inner] - 0.5 * (z[inner - 1] + z[inner + 1])) > 0.5 * threshold
+    off_median = np.abs(z[inner] - np.median(np.stack([z[inner + k] for k in range(-2, 3)]), axis=0)) > threshold
+    keep = np.ones(n, dtype=bool)
+    keep[inner[off_line & off_median]] = False
+    px, pz = x.copy(), z.copy()
+    kept = _drop_spikes(px, pz, n, threshold)
+    assert kept == keep.sum()
+    assert np.array_equal(px[:kept], x[keep]) and np.array_equal(pz[:kept], z[keep])
 
 
 @settings(max_examples=200, deadline=None)
