@@ -989,7 +989,10 @@ CURVED_ABOVE = 1e-8
 # (chi-square(1)'s 99 % point / the Gaussian's two-sided 99 % point)^2 = (6.635 / 2.576)^2: the variance along
 # the valley's curvature whose Gaussian 99 % point is the quadratic error's
 CURVE_TAIL = 6.63
-POWER_STEPS = 60  # power iterations for the weakest direction: its variance leads the next by 5-100x here
+# power iterations for the weakest direction, at most: its variance leads the next by 5-100x here, so the
+# direction settles to rounding within 5-25 of them, and the iteration stops once a step moves it by less
+POWER_STEPS = 60
+POWER_SETTLED = 1e-15
 
 
 @kernel(**JIT)
@@ -1010,8 +1013,13 @@ def _weakest_direction(cov, v):
         value = math.sqrt(value)
         if value == 0.0:
             return 0.0
+        moved = 0.0
         for a in range(6):
-            v[a] = w[a] / value
+            w[a] /= value
+            moved = max(moved, abs(w[a] - v[a]))
+            v[a] = w[a]
+        if moved < POWER_SETTLED:
+            break
     return value
 
 
