@@ -124,6 +124,41 @@ def test_a_gap_over_a_whole_face_leaves_its_neighbours_to_place_it(rng):
     assert refused <= 8 and np.median(nees) < 12 and max(nees) < 40
 
 
+@pytest.mark.parametrize("refine_model", ["corners", "auto"])
+def test_an_estimate_from_a_detection_is_the_one_that_detects_again(rng, refine_model):
+    """A partial view's hypotheses start the compiled estimate from the corners they detected already
+    (pipeline_kernel.estimate_detected): to the bit the estimate that detects them again, on whole profiles and
+    on the gauge without the face a gap hides, with the gap's kernel vector."""
+    from profile_pose_ros.core.estimation.estimator import _estimate_every_stage
+    from profile_pose_ros.core.estimation.hidden_face import _gauge_without, _unbounded, _vector_for_a_gap
+    from profile_pose_ros.core.estimation.result import EstimatorOptions
+    from profile_pose_ros.core.estimation.stages import detect_with
+
+    options = EstimatorOptions().with_changes(refine_model=refine_model)
+    relaxed = _unbounded(options.for_a_partial_view)
+    cases = [(gauge, gauge, options, options.kernel_vector, render_profile(gauge, *sample_pose(gauge, rng),
+                                                                           noise_std=5e-6, rng=rng))
+             for gauge in (random_gauge(n, rng) for n in (4, 5, 7))]
+    for gauge, rotation, t, face, points in narrow_faces_hidden(rng, 4):
+        corners = true_corners(gauge, rotation, t)[:, 0]
+        cases.append((gauge, _gauge_without(gauge, face, 1), relaxed,
+                      _vector_for_a_gap(relaxed, corners[face - 1], corners[face]), points))
+    compared = 0
+    for gauge, seen, opts, vector, points in cases:
+        if seen is None:
+            continue
+        detection = detect_with(points, seen.n_ridges, vector, opts.corners)
+        assert detection.ok, detection.reason
+        again = _estimate_every_stage(points, seen, opts, surface=gauge, vector=vector)
+        given = _estimate_every_stage(points, seen, opts, surface=gauge, vector=vector, detection=detection)
+        assert (given.ok, given.reason) == (again.ok, again.reason)
+        for a, b in ((given.R, again.R), (given.t, again.t), (given.covariance, again.covariance),
+                     (given.corners, again.corners)):
+            assert np.array_equal(a, b, equal_nan=True)
+        compared += 1
+    assert compared >= 5
+
+
 def two_narrow_faces_hidden(rng, count: int):
     """(gauge, rotation, t, face, profile) of random seven-ridge gauges, each with a gap over the corner
     between two adjacent narrow faces that takes both faces and their outer corners (all but less than a

@@ -95,7 +95,7 @@ def load(timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile pipeline_kernel.estimate, estimate_kernel.refine_pose, .detect, .profile_gaps,
+    """Compile pipeline_kernel.estimate and .estimate_detected, estimate_kernel.refine_pose, .detect, .profile_gaps,
     decode_kernel.decode_xz and dense_kernel.refine_dense with numba.pycc (in its own process: it loads LLVM)."""
     import warnings
 
@@ -122,6 +122,17 @@ def build_into(directory: Path) -> None:
                  cf_t, cf_res, res, info):
         return pipeline_kernel.estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt,
                                         corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
+
+    detected_signature = types.Tuple((types.int64, types.int64, f8, f8, f8, f8, types.int64))(
+        array2, frozen2, frozen1, frozen1, array2, array1, array1, array1, f8, f8, frozen1, array2, array2, array1, f8,
+        array2, array1, array2, array2, array1, array2, array2, array1)
+
+    @compiler.export("estimate_detected", detected_signature)
+    def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, jac,
+                          line_var, fit_rms, rot, t, cov, cf_rot, cf_t, cf_res, res, info):
+        return pipeline_kernel.estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
+                                                 opt, corners, jac, line_var, fit_rms, rot, t, cov, cf_rot, cf_t,
+                                                 cf_res, res, info)
 
     boolean, int64 = types.boolean, types.int64
     refine_signature = types.Tuple((int64, int64))(

@@ -26,8 +26,8 @@ _kernel_name = ""
 
 
 def kernels():
-    """The compiled functions in use (estimate, detect, refine_pose, profile_gaps, decode_xz, refine_dense):
-    loaded (and, the first time on a machine, built) on first need."""
+    """The compiled functions in use (estimate, estimate_detected, detect, refine_pose, profile_gaps, decode_xz,
+    refine_dense): loaded (and, the first time on a machine, built) on first need."""
     global _kernels, _kernel_name
     if _kernels is None:
         choice = os.environ.get("PROFILE_POSE_KERNEL", "auto")
@@ -45,7 +45,9 @@ def kernels():
             from .decode_kernel import decode_xz as jit_decode_xz
             from .dense_kernel import refine_dense
 
-            _kernels = SimpleNamespace(estimate=pipeline_kernel.estimate, detect=estimate_kernel.detect,
+            _kernels = SimpleNamespace(estimate=pipeline_kernel.estimate,
+                                       estimate_detected=pipeline_kernel.estimate_detected,
+                                       detect=estimate_kernel.detect,
                                        refine_pose=estimate_kernel.refine_pose,
                                        profile_gaps=estimate_kernel.profile_gaps, decode_xz=jit_decode_xz,
                                        refine_dense=refine_dense)

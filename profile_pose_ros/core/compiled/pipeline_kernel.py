@@ -177,20 +177,37 @@ def _dense_stage(points, q, u, w, faces, width, length, opt, corners, rot, t, co
 
 
 @kernel(**JIT)
+def _unset(rot_out, t_out, cov_out):
+    """The outputs NaN: they stay so unless a pose is accepted."""
+    rot_out[:, :] = np.nan
+    t_out[:] = np.nan
+    cov_out[:, :] = np.nan
+
+
+@kernel(**JIT)
 def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, rot_out, t_out, cov_out,
              cf_rot, cf_t, cf_res, res_out, info):
     """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,
     position_sigma, search_starts); position_sigma is NaN unless a pose is accepted, search_starts 0 unless
     the basin search ran."""
     n = u.shape[0]
-    rot_out[:, :] = np.nan  # stays NaN unless a pose is accepted
-    t_out[:] = np.nan
-    cov_out[:, :] = np.nan
     jac = np.empty((2 * n, 2 * (n + 1)))
     line_var = np.empty(2 * (n + 1))
     status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info, np.empty((n + 1, 10)))
     if status != OK:
+        _unset(rot_out, t_out, cov_out)
         return status, 0, np.nan, np.nan, np.nan, np.nan, 0
+    return estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, jac,
+                             line_var, fit_rms, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out, info)
+
+
+@kernel(**JIT)
+def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, jac, line_var,
+                      fit_rms, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out, info):
+    """estimate from a detection already made (corners, jac, line_var and fit_rms as estimate_kernel.detect
+    returns them, with this opt): a partial view tries several gauges on one detection (hidden_face.py)."""
+    n = u.shape[0]
+    _unset(rot_out, t_out, cov_out)
     corner_cov = np.empty((2 * n, 2 * n))
     for a in range(2 * n):
         for b in range(2 * n):

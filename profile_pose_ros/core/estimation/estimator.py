@@ -21,7 +21,8 @@ from .hidden_face import estimate_past_a_hidden_face, prepare_partial_views
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_ambiguous,
                      reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected)
 from .residuals import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
-from .stages import detect_corners, detection_reason, refine_pose
+from .corners import CornerResult
+from .stages import detect_corners, detect_with, detection_reason, refine_pose
 
 REASON_NO_START = "no real starting pose for the 4-ridge gauge"
 
@@ -47,10 +48,12 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
 
 
 def _estimate_every_stage(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
-                          surface: Gauge | None = None, vector: np.ndarray | None = None) -> PoseEstimate:
+                          surface: Gauge | None = None, vector: np.ndarray | None = None,
+                          detection: CornerResult | None = None) -> PoseEstimate:
     """surface: the gauge whose faces the dense refinement fits (gauge itself unless gauge is one without a
-    face); vector: options' kernel vector with the kernel-only settings a partial view adds (hidden_face.py)."""
-    return _checked_precision(_estimate_in_one_call(points, gauge, options, surface, vector), options)
+    face); vector: options' kernel vector with the kernel-only settings a partial view adds; detection: the
+    profile's corners for this gauge, detected with them already (both: hidden_face.py)."""
+    return _checked_precision(_estimate_in_one_call(points, gauge, options, surface, vector, detection), options)
 
 
 def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> PoseEstimate:
@@ -98,22 +101,31 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
 
 
 def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
-                          surface: Gauge | None = None, vector: np.ndarray | None = None) -> PoseEstimate:
+                          surface: Gauge | None = None, vector: np.ndarray | None = None,
+                          detection: CornerResult | None = None) -> PoseEstimate:
     """The whole estimate in a single compiled call (corners, closed form or four-ridge starts, refinement,
-    basin search, checks)."""
+    basin search, checks); from `detection` on, when the caller has detected this profile's corners for this
+    gauge already, with these options (a partial view's hypotheses: hidden_face.py)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
     n = gauge.n_ridges
-    corners = np.empty((n, 2))
+    vector = options.kernel_vector if vector is None else vector
+    gauge_arrays = (points, gauge.q, gauge.u, gauge.w, *(surface or gauge).kernel_faces, gauge.width, gauge.length,
+                    vector)
     rot, t, cov = np.empty((3, 3)), np.empty(3), np.empty((6, 6))  # NaN-filled by the kernel unless ok
     cf_rot, cf_t, cf_res, res = np.empty((3, 3)), np.empty(3), np.empty((n, 2)), np.empty((n, 2))
     info = np.zeros(4)
     start = time.perf_counter()
     try:
-        status, iterations, fit_rms, error, cf_error, sigma, search_starts = kernels().estimate(
-            points, gauge.q, gauge.u, gauge.w, *(surface or gauge).kernel_faces, gauge.width, gauge.length,
-            options.kernel_vector if vector is None else vector, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
+        if detection is None:
+            corners = np.empty((n, 2))
+            outcome = kernels().estimate(*gauge_arrays, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
+        else:
+            corners = detection.corners
+            outcome = kernels().estimate_detected(*gauge_arrays, corners, detection.jacobian, detection.line_variance,
+                                                  detection.fit_rms, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
+        status, iterations, fit_rms, error, cf_error, sigma, search_starts = outcome
     except np.linalg.LinAlgError as exc:
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
     timings = {"total": time.perf_counter() - start}
@@ -144,6 +156,8 @@ def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
     _estimate_in_one_call(np.full((10, 2), np.nan), gauge, options)  # a failure path too
     if options.hidden_faces:
         prepare_partial_views(gauge, options.for_a_partial_view)
+        detection = detect_with(profile, gauge.n_ridges, options.kernel_vector, options.corners)
+        _estimate_in_one_call(profile, gauge, options, detection=detection)  # the partial views' entry
     return time.perf_counter() - start
 
 

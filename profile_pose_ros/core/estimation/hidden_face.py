@@ -28,7 +28,7 @@ from ..compiled.loader import kernels
 from ..model.gauge import Gauge, GaugeError
 from .corners import CornerResult
 from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
-from .stages import detect_corners, detect_with
+from .stages import detect_with
 
 # a run between two valid points wider than this many point pitches is a gap, not the profiler's spacing
 GAP_PITCHES = 3.0
@@ -81,16 +81,16 @@ def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: Estim
     # faces out of view at the ends (the gauge near the edge of the profiler's field, or a gap over the end of
     # the lit span, which may take the next face's few points with it): the lines seen are a run of the
     # gauge's faces, one shorter per corner missing
-    detection = detect_corners(points, n - 1, options.corners)
+    unsearched = _without_search(options)
+    detection = detect_with(points, n - 1, unsearched.kernel_vector, options.corners)
     if not detection.ok and MIN_RIDGES + 1 <= detection.faces_found < n:
-        detection = detect_corners(points, detection.faces_found - 1, options.corners)
+        detection = detect_with(points, detection.faces_found - 1, unsearched.kernel_vector, options.corners)
     if not detection.ok:
         return None
     seen = (detection.lines[0].x_min, detection.lines[-1].x_max)
     shown = len(detection.lines) - 1  # faces first..first + shown are in view
-    unsearched = _without_search(options)
-    runs = [_with_faces_out_of_view(points, gauge, unsearched, estimate, first, first + shown, seen, tolerance)
-            for first in range(n - shown + 1)]
+    runs = [_with_faces_out_of_view(points, gauge, unsearched, estimate, detection, first, first + shown, seen,
+                                    tolerance) for first in range(n - shown + 1)]
     accepted = [found for found in runs if found.ok]
     if len(accepted) == 1:
         return accepted[0]
@@ -175,7 +175,7 @@ def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: Estimat
     if without is None:
         return PoseEstimate(False, f"corner detection: {where}, but faces {face - 1} and {face + count} are parallel: "
                                    f"without a corner between them the faces seen do not determine the pose")
-    found = estimate(points, without, relaxed, vector=vector)
+    found = estimate(points, without, relaxed, vector=vector, detection=detection)
     if not found.ok:
         return replace(found, reason=f"{found.reason} (with {where})")
     hidden = _ridge_x(gauge, found.R, found.t, face - 1, face + count)  # the ridges bounding them
@@ -190,10 +190,11 @@ def _with_faces_hidden_in_gap(points: np.ndarray, gauge: Gauge, options: Estimat
 
 
 def _with_faces_out_of_view(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, estimate: Callable,
-                            first: int, last: int, seen: tuple[float, float], tolerance: float) -> PoseEstimate:
-    """The pose with only faces first..last in view: the corners of the faces beyond them must lie beyond the
-    faces seen (x span `seen`)."""
-    found = estimate(points, gauge.faces_in_view(first, last), options)
+                            detection: CornerResult, first: int, last: int, seen: tuple[float, float],
+                            tolerance: float) -> PoseEstimate:
+    """The pose with only faces first..last in view (their corners: detection, with options): the corners of
+    the faces beyond them must lie beyond the faces seen (x span `seen`)."""
+    found = estimate(points, gauge.faces_in_view(first, last), options, detection=detection)
     if not found.ok:
         return found
     ridges = _ridge_x(gauge, found.R, found.t, 0, gauge.n_ridges)

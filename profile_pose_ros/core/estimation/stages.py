@@ -45,15 +45,14 @@ def detect_with(points: np.ndarray, n_corners: int, vector: np.ndarray, options:
     if points.ndim != 2 or points.shape[1] != 2:
         return CornerResult(False, f"profile must be an (N, 2) array, got shape {points.shape}")
     corners, jac = np.empty((n_corners, 2)), np.empty((2 * n_corners, 2 * (n_corners + 1)))
-    lines, info = np.empty((n_corners + 1, 10)), np.zeros(4)
-    status, _, fit_rms = kernels().detect(points, n_corners, vector, corners, jac, np.empty(2 * (n_corners + 1)), info,
-                                          lines)
+    lines, line_var, info = np.empty((n_corners + 1, 10)), np.empty(2 * (n_corners + 1)), np.zeros(4)
+    status, _, fit_rms = kernels().detect(points, n_corners, vector, corners, jac, line_var, info, lines)
     if status != codes.OK:
         return CornerResult(False, detection_reason(status, info, n_corners, options),
                             faces_found=int(info[1]) if status == codes.WRONG_CORNER_COUNT else 0)
     fits = [LineFit(int(first), int(last), slope, x_mean, z_mean, sxx, int(used), sigma, x_min, x_max)
             for first, last, slope, x_mean, z_mean, sxx, used, sigma, x_min, x_max in lines.tolist()]
-    return CornerResult(True, "", corners, fits, jac, fit_rms)
+    return CornerResult(True, "", corners, fits, jac, fit_rms, line_variance=line_var)
 
 
 @lru_cache(maxsize=16)
