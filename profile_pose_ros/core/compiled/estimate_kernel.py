@@ -261,6 +261,12 @@ def _median5(a, b, c, d, e):
 
 
 @kernel(**JIT)
+def _off_its_neighbours(pz, i, distance):
+    """Whether point i lies more than `distance` off the line through its two neighbours (a glint suspect)."""
+    return abs(pz[i] - 0.5 * (pz[i - 1] + pz[i + 1])) > distance
+
+
+@kernel(**JIT)
 def _drop_spikes(px, pz, n, threshold):
     """Remove, in place, the points more than `threshold` off the median depth of their five neighbours in scan
     order; returns how many remain. A glint's depth is unrelated to the face's: left in, RDP breaks the face at
@@ -276,13 +282,13 @@ def _drop_spikes(px, pz, n, threshold):
     half = 0.5 * threshold
     suspects = 0
     for i in range(2, n - 2):
-        suspects += abs(pz[i] - 0.5 * (pz[i - 1] + pz[i + 1])) > half
+        suspects += _off_its_neighbours(pz, i, half)
     if suspects == 0:
         return n
     spike = np.zeros(n, dtype=np.bool_)
     first = n
     for i in range(2, n - 2):
-        if abs(pz[i] - 0.5 * (pz[i - 1] + pz[i + 1])) > half:
+        if _off_its_neighbours(pz, i, half):
             if abs(pz[i] - _median5(pz[i - 2], pz[i - 1], pz[i], pz[i + 1], pz[i + 2])) > threshold:
                 spike[i] = True
                 first = min(first, i)
