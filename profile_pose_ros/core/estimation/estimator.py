@@ -111,8 +111,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
     n = gauge.n_ridges
     vector = options.kernel_vector if vector is None else vector
-    gauge_arrays = (points, gauge.q, gauge.u, gauge.w, *(surface or gauge).kernel_faces, gauge.width, gauge.length,
-                    vector)
+    inputs = (points, gauge.q, gauge.u, gauge.w, *(surface or gauge).kernel_faces, gauge.width, gauge.length, vector)
     rot, t, cov = np.empty((3, 3)), np.empty(3), np.empty((6, 6))  # NaN-filled by the kernel unless ok
     cf_rot, cf_t, cf_res, res = np.empty((3, 3)), np.empty(3), np.empty((n, 2)), np.empty((n, 2))
     info = np.zeros(4)
@@ -120,10 +119,10 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     try:
         if detection is None:
             corners = np.empty((n, 2))
-            outcome = kernels().estimate(*gauge_arrays, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
+            outcome = kernels().estimate(*inputs, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
         else:
             corners = detection.corners
-            outcome = kernels().estimate_detected(*gauge_arrays, corners, detection.jacobian, detection.line_variance,
+            outcome = kernels().estimate_detected(*inputs, corners, detection.jacobian, detection.line_variance,
                                                   detection.fit_rms, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
         status, iterations, fit_rms, error, cf_error, sigma, search_starts = outcome
     except np.linalg.LinAlgError as exc:
