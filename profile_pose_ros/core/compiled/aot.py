@@ -95,7 +95,7 @@ def load(timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile pipeline_kernel.estimate and .estimate_detected, estimate_kernel.refine_pose, .detect, .profile_gaps,
+    """Compile pipeline_kernel.estimate, partial_kernel.estimate_partial, estimate_kernel.refine_pose and .detect,
     decode_kernel.decode_xz and dense_kernel.refine_dense with numba.pycc (in its own process: it loads LLVM)."""
     import warnings
 
@@ -105,7 +105,7 @@ def build_into(directory: Path) -> None:
         warnings.simplefilter("ignore")
         from numba.pycc import CC
 
-    from . import decode_kernel, dense_kernel, estimate_kernel, pipeline_kernel
+    from . import decode_kernel, dense_kernel, estimate_kernel, partial_kernel, pipeline_kernel
 
     f8 = types.float64
     array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
@@ -123,18 +123,20 @@ def build_into(directory: Path) -> None:
         return pipeline_kernel.estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt,
                                         corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
 
-    detected_signature = types.Tuple((types.int64, types.int64, f8, f8, f8, f8, types.int64))(
-        array2, frozen2, frozen1, frozen1, array2, array1, array1, array1, f8, f8, frozen1, array2, array2, array1, f8,
-        array2, array1, array2, array2, array1, array2, array2, array1)
-
-    @compiler.export("estimate_detected", detected_signature)
-    def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, jac,
-                          line_var, fit_rms, rot, t, cov, cf_rot, cf_t, cf_res, res, info):
-        return pipeline_kernel.estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
-                                                 opt, corners, jac, line_var, fit_rms, rot, t, cov, cf_rot, cf_t,
-                                                 cf_res, res, info)
-
     boolean, int64 = types.boolean, types.int64
+    array4 = types.Array(f8, 4, "C")
+    partial_signature = types.Tuple((int64, int64, f8, f8, f8, f8, int64, int64))(
+        array2, frozen2, frozen1, frozen1, array2, array1, array1, array1, f8, f8, frozen1, frozen1, array4, array4, f8,
+        f8, array2, array2, array1, array2, array2, array1, array2, array2, array1, types.Array(int64, 1, "C"), array1)
+
+    @compiler.export("estimate_partial", partial_signature)
+    def estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, relaxed, unsearched,
+                         hidden_table, view_table, max_sigma, margin, corners, rot, t, cov, cf_rot, cf_t, cf_res, res,
+                         info, which, where):
+        return partial_kernel.estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
+                                               relaxed, unsearched, hidden_table, view_table, max_sigma, margin,
+                                               corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info, which, where)
+
     refine_signature = types.Tuple((int64, int64))(
         frozen2, frozen1, frozen1, array2, array2, array1, array2, boolean, int64, boolean, array2, array1, array1,
         array2)
@@ -150,10 +152,6 @@ def build_into(directory: Path) -> None:
     @compiler.export("detect", detect_signature)
     def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
         return estimate_kernel.detect(points, n_corners, opt, corners, jac, line_var, info, lines_out)
-
-    @compiler.export("profile_gaps", types.Tuple((int64, int64, f8))(array2, f8, array2))
-    def profile_gaps(points, pitches, gaps):
-        return estimate_kernel.profile_gaps(points, pitches, gaps)
 
     table = types.Array(types.float32, 2, "C", readonly=True)
 

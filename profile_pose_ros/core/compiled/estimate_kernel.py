@@ -305,7 +305,7 @@ def _drop_spikes(px, pz, n, threshold):
 def profile_gaps(points, pitches, gaps):
     """The spacing of the valid points' x (the median step) and, in gaps (rows (x before, x after), widest
     first), up to gaps.shape[0] of the steps wider than `pitches` spacings; returns (valid points, gaps found,
-    spacing). A partial view's first question (hidden_face.py), in one pass where numpy's valid-point mask,
+    spacing). A partial view's first question (partial_kernel.py), in one pass where numpy's valid-point mask,
     diff and median took three."""
     n_all = points.shape[0]
     steps = np.empty(max(n_all - 1, 0))

@@ -26,8 +26,7 @@ _kernel_name = ""
 
 
 def kernels():
-    """The compiled functions in use (estimate, estimate_detected, detect, refine_pose, profile_gaps, decode_xz,
-    refine_dense): loaded (and, the first time on a machine, built) on first need."""
+    """The compiled functions in use (estimate, estimate_partial, detect, refine_pose, decode_xz, refine_dense): loaded (and, the first time on a machine, built) on first need."""
     global _kernels, _kernel_name
     if _kernels is None:
         choice = os.environ.get("PROFILE_POSE_KERNEL", "auto")
@@ -41,23 +40,23 @@ def kernels():
         else:
             if choice == "python":
                 _uncompiled()
-            from . import estimate_kernel, pipeline_kernel
+            from . import estimate_kernel, partial_kernel, pipeline_kernel
             from .decode_kernel import decode_xz as jit_decode_xz
             from .dense_kernel import refine_dense
 
             _kernels = SimpleNamespace(estimate=pipeline_kernel.estimate,
-                                       estimate_detected=pipeline_kernel.estimate_detected,
+                                       estimate_partial=partial_kernel.estimate_partial,
                                        detect=estimate_kernel.detect,
                                        refine_pose=estimate_kernel.refine_pose,
-                                       profile_gaps=estimate_kernel.profile_gaps, decode_xz=jit_decode_xz,
+                                       decode_xz=jit_decode_xz,
                                        refine_dense=refine_dense)
             _kernel_name = "numba jit" if HAVE_NUMBA and choice != "python" else "uncompiled (python)"
     return _kernels
 
 
 KERNEL_MODULES = tuple(f"{__package__}.{name}"
-                       for name in ("estimate_kernel", "search_kernel", "pipeline_kernel", "decode_kernel",
-                                    "dense_kernel"))
+                       for name in ("estimate_kernel", "search_kernel", "pipeline_kernel", "partial_kernel",
+                                    "decode_kernel", "dense_kernel"))
 
 
 def _uncompiled() -> None:

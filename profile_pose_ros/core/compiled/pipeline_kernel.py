@@ -205,7 +205,7 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
 def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, jac, line_var,
                       fit_rms, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out, info):
     """estimate from a detection already made (corners, jac, line_var and fit_rms as estimate_kernel.detect
-    returns them, with this opt): a partial view tries several gauges on one detection (hidden_face.py)."""
+    returns them, with this opt): a partial view tries several gauges on one detection (partial_kernel.py)."""
     n = u.shape[0]
     _unset(rot_out, t_out, cov_out)
     corner_cov = np.empty((2 * n, 2 * n))

@@ -68,9 +68,6 @@ class CornerResult:
     jacobian: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # d corners / d line params
     fit_rms: float = float("nan")  # m, rms residual of the face fits
     faces_found: int = 0  # when refused for the number of corners: how many faces were found
-    # the line parameters' variances as detected (the kernel's, with the noise its options gave): an estimate
-    # made from this detection weighs the corners by them (estimator._estimate_in_one_call)
-    line_variance: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def covariance(self, noise_std: float | None = None, floor: float = 1e-7) -> np.ndarray:
         """(2n, 2n) covariance of the stacked corners [x0, z0, x1, z1, ...].

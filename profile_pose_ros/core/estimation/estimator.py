@@ -9,7 +9,6 @@ every stage: the kernels in compiled/, compiled ahead, JIT-compiled or, for debu
 from __future__ import annotations
 
 import time
-from functools import partial
 
 import numpy as np
 
@@ -17,12 +16,11 @@ from ..compiled import codes
 from ..compiled.loader import kernels
 from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
-from .hidden_face import estimate_past_a_hidden_face, prepare_partial_views
+from .hidden_face import estimate_past_a_hidden_face, partial_tables
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_ambiguous,
                      reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected)
 from .residuals import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
-from .corners import CornerResult
-from .stages import detect_corners, detect_with, detection_reason, refine_pose
+from .stages import detect_corners, detection_reason, refine_pose
 
 REASON_NO_START = "no real starting pose for the 4-ridge gauge"
 
@@ -36,24 +34,14 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
     options = options or EstimatorOptions()
     if overrides:
         options = options.with_changes(**overrides)
-    estimate = _estimate_every_stage(points, gauge, options)
+    estimate = _checked_precision(_estimate_in_one_call(points, gauge, options), options)
     if not estimate.ok and estimate.corners.size == 0 and options.hidden_faces:
         # corner detection refused it: perhaps a gap hides a whole face. The corners then see the gauge
         # without that face, but the profile's points still lie on the real gauge: the dense refinement fits
         # them to all its faces (with the reduced gauge it cut the points of a face narrowly in view after all
         # and settled far off: docs/estimator.md)
-        return estimate_past_a_hidden_face(points, gauge, options.for_a_partial_view,
-                                           partial(_estimate_every_stage, surface=gauge)) or estimate
+        return estimate_past_a_hidden_face(points, gauge, options.for_a_partial_view, _described) or estimate
     return estimate
-
-
-def _estimate_every_stage(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
-                          surface: Gauge | None = None, vector: np.ndarray | None = None,
-                          detection: CornerResult | None = None) -> PoseEstimate:
-    """surface: the gauge whose faces the dense refinement fits (gauge itself unless gauge is one without a
-    face); vector: options' kernel vector with the kernel-only settings a partial view adds; detection: the
-    profile's corners for this gauge, detected with them already (both: hidden_face.py)."""
-    return _checked_precision(_estimate_in_one_call(points, gauge, options, surface, vector, detection), options)
 
 
 def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> PoseEstimate:
@@ -100,34 +88,31 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
     return f"internal status {status}"
 
 
-def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
-                          surface: Gauge | None = None, vector: np.ndarray | None = None,
-                          detection: CornerResult | None = None) -> PoseEstimate:
+def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
     """The whole estimate in a single compiled call (corners, closed form or four-ridge starts, refinement,
-    basin search, checks); from `detection` on, when the caller has detected this profile's corners for this
-    gauge already, with these options (a partial view's hypotheses: hidden_face.py)."""
+    basin search, checks)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
     n = gauge.n_ridges
-    vector = options.kernel_vector if vector is None else vector
-    inputs = (points, gauge.q, gauge.u, gauge.w, *(surface or gauge).kernel_faces, gauge.width, gauge.length, vector)
-    rot, t, cov = np.empty((3, 3)), np.empty(3), np.empty((6, 6))  # NaN-filled by the kernel unless ok
-    cf_rot, cf_t, cf_res, res = np.empty((3, 3)), np.empty(3), np.empty((n, 2)), np.empty((n, 2))
-    info = np.zeros(4)
+    # corners, rotation, t, covariance (NaN-filled by the kernel unless ok), closed form's, residuals, info
+    outputs = (np.empty((n, 2)), np.empty((3, 3)), np.empty(3), np.empty((6, 6)), np.empty((3, 3)), np.empty(3),
+               np.empty((n, 2)), np.empty((n, 2)), np.zeros(4))
     start = time.perf_counter()
     try:
-        if detection is None:
-            corners = np.empty((n, 2))
-            outcome = kernels().estimate(*inputs, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
-        else:
-            corners = detection.corners
-            outcome = kernels().estimate_detected(*inputs, corners, detection.jacobian, detection.line_variance,
-                                                  detection.fit_rms, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
-        status, iterations, fit_rms, error, cf_error, sigma, search_starts = outcome
+        outcome = kernels().estimate(points, gauge.q, gauge.u, gauge.w, *gauge.kernel_faces, gauge.width,
+                                     gauge.length, options.kernel_vector, *outputs)
     except np.linalg.LinAlgError as exc:
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
-    timings = {"total": time.perf_counter() - start}
+    return _from_outcome(outcome, outputs, gauge, options, {"total": time.perf_counter() - start})
+
+
+def _from_outcome(outcome: tuple, outputs: tuple, gauge: Gauge, options: EstimatorOptions,
+                  timings: dict) -> PoseEstimate:
+    """The PoseEstimate of a compiled estimate's outcome (its returned tuple) and outputs (the arrays it filled,
+    in _estimate_in_one_call's order) for `gauge` (the one its corners saw)."""
+    status, iterations, fit_rms, error, cf_error, sigma, search_starts = outcome
+    corners, rot, t, cov, cf_rot, cf_t, cf_res, _, info = outputs
     if status in (codes.TOO_FEW_POINTS, codes.X_NOT_INCREASING, codes.STEEP_SEGMENT, codes.WRONG_CORNER_COUNT,
                   codes.CORNER_NOT_BETWEEN, codes.CORNERS_NOT_INCREASING):
         return PoseEstimate(False, _reason(status, info, gauge, options, error), timings=timings)
@@ -139,6 +124,12 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
                         closed_form=PoseSolution(cf_rot, cf_t, cf_res), refined=options.refine,
                         iterations=iterations, fit_rms=fit_rms, timings=timings,
                         position_sigma=sigma if ok else None, search_starts=int(search_starts))
+
+
+def _described(outcome: tuple, outputs: tuple, gauge: Gauge, options: EstimatorOptions,
+               timings: dict) -> PoseEstimate:
+    """A partial view's estimate (hidden_face.py), checked as every estimate is."""
+    return _checked_precision(_from_outcome(outcome, outputs, gauge, options, timings), options)
 
 
 def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
@@ -154,9 +145,8 @@ def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
     _estimate_in_one_call(profile, gauge, options)
     _estimate_in_one_call(np.full((10, 2), np.nan), gauge, options)  # a failure path too
     if options.hidden_faces:
-        prepare_partial_views(gauge, options.for_a_partial_view)
-        detection = detect_with(profile, gauge.n_ridges, options.kernel_vector, options.corners)
-        _estimate_in_one_call(profile, gauge, options, detection=detection)  # the partial views' entry
+        partial_tables(gauge)
+        estimate_past_a_hidden_face(profile, gauge, options.for_a_partial_view, _described)  # its kernel's entry
     return time.perf_counter() - start
 
 

@@ -35,24 +35,19 @@ def detection_reason(status: int, info: np.ndarray, n: int, options: CornerOptio
 
 def detect_corners(points: np.ndarray, n_corners: int, options: CornerOptions = CornerOptions()) -> CornerResult:
     """The profile's n corners, their face fits and Jacobian, or why not (paper II-D; corners.py says how)."""
-    return detect_with(points, n_corners, _corner_kernel_vector(options), options)
-
-
-def detect_with(points: np.ndarray, n_corners: int, vector: np.ndarray, options: CornerOptions) -> CornerResult:
-    """detect_corners with the kernel's options already packed (vector: an EstimatorOptions.kernel_vector whose
-    corner options are `options`), for a caller that packs them for its estimate anyway."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         return CornerResult(False, f"profile must be an (N, 2) array, got shape {points.shape}")
     corners, jac = np.empty((n_corners, 2)), np.empty((2 * n_corners, 2 * (n_corners + 1)))
     lines, line_var, info = np.empty((n_corners + 1, 10)), np.empty(2 * (n_corners + 1)), np.zeros(4)
-    status, _, fit_rms = kernels().detect(points, n_corners, vector, corners, jac, line_var, info, lines)
+    status, _, fit_rms = kernels().detect(points, n_corners, _corner_kernel_vector(options), corners, jac, line_var,
+                                          info, lines)
     if status != codes.OK:
         return CornerResult(False, detection_reason(status, info, n_corners, options),
                             faces_found=int(info[1]) if status == codes.WRONG_CORNER_COUNT else 0)
     fits = [LineFit(int(first), int(last), slope, x_mean, z_mean, sxx, int(used), sigma, x_min, x_max)
             for first, last, slope, x_mean, z_mean, sxx, used, sigma, x_min, x_max in lines.tolist()]
-    return CornerResult(True, "", corners, fits, jac, fit_rms, line_variance=line_var)
+    return CornerResult(True, "", corners, fits, jac, fit_rms)
 
 
 @lru_cache(maxsize=16)
