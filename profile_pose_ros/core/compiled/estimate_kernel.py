@@ -1107,8 +1107,9 @@ def _unstack_residuals(r, out):
 
 @kernel(**JIT)
 def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
-    """Corner detection alone (stages.detect_corners: partial views' hypotheses, studies, the NEES tools)."""
-    return _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out)
+    """Corner detection alone (stages.detect_corners: studies, the NEES tools, the wrong-minimum check); on a
+    writable copy of opt, as the estimate detects (pipeline_kernel.estimate: one compiled detection for all)."""
+    return _detect(points, n_corners, opt.copy(), corners, jac, line_var, info, lines_out)
 
 
 @kernel(**JIT)

@@ -137,8 +137,7 @@ def estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width,
     # the faces a gap's detection finds do not depend on how many corners it was asked for (only whether that is
     # the count found): once known, the hypotheses that count cannot meet need no detection of their own
     faces_found = np.full(MOST_GAPS, -1)
-    # writable copies: the estimate is compiled once for the option vectors of both kinds of hypothesis (the
-    # caller's are read-only, and a second compiled copy of the whole estimate would double the build)
+    # writable copies, as pipeline_kernel.estimate makes: the estimate is compiled once for every entry
     vector, unsearched = relaxed.copy(), unsearched.copy()
     for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
         m = n - count

@@ -190,6 +190,10 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
     """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,
     position_sigma, search_starts); position_sigma is NaN unless a pose is accepted, search_starts 0 unless
     the basin search ran."""
+    # writable copies of the caller's read-only arrays: numba compiles a function once per argument type, and
+    # read-only is a type of its own; partial_kernel's hypotheses pass arrays made in the call, so with these the
+    # whole pipeline below is compiled once for both entries, not twice (a prebuilt build ~50 s longer)
+    q, u, w, opt = q.copy(), u.copy(), w.copy(), opt.copy()
     n = u.shape[0]
     jac = np.empty((2 * n, 2 * (n + 1)))
     line_var = np.empty(2 * (n + 1))
