@@ -253,6 +253,29 @@ def test_two_faces_beyond_the_view_leave_the_run_of_faces_seen(rng, refine_model
         assert position < 1e-3 and rotation_error < 5e-3
 
 
+def test_the_partial_tables_hold_the_ridges_of_every_reduced_gauge(gauge):
+    """What the compiled partial view reads for a gauge without a face, or with a run of faces in view, is that
+    Gauge's own ridges; NaN where the faces either side never meet (the paper gauge's faces 2 and 4)."""
+    from profile_pose_ros.core.estimation.hidden_face import partial_tables
+
+    hidden, in_view = partial_tables(gauge)
+    n = gauge.n_ridges
+    missing = []
+    for face in range(1, n):
+        try:
+            without = gauge.without_face(face)
+        except GaugeError:
+            missing.append(face)
+            assert np.isnan(hidden[0, face]).all()
+            continue
+        assert np.array_equal(hidden[0, face, :n - 1], np.column_stack([without.q, without.u, without.w]))
+    assert missing == [3]
+    for first, last in ((0, n - 1), (1, n)):
+        seen = gauge.faces_in_view(first, last)
+        assert np.array_equal(in_view[first, last, :last - first], np.column_stack([seen.q, seen.u, seen.w]))
+    assert partial_tables(gauge)[0] is hidden  # made once per gauge
+
+
 def test_a_gap_that_hides_no_face_is_not_explained_by_one(gauge, rng):
     """A profile of another gauge, one face short, with a gap: no hidden face of this gauge explains it."""
     rotation, t = sample_pose(gauge, rng)

@@ -197,7 +197,8 @@ def estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width,
     for first in range(n - m + 1):
         last = first + m
         ridges = (np.empty((m, 3)), np.empty(m), np.empty(m))
-        _ridges_of(view_table[first, last], ridges[0], ridges[1], ridges[2])
+        if not _ridges_of(view_table[first, last], ridges[0], ridges[1], ridges[2]):
+            continue  # partial_tables makes every run a detection here can see: a table it did not make explains none
         outcome = _estimate_attempt(points, ridges, normals, offsets, ridge_q, ridge_u, width, length, unsearched,
                                     buffers, fit_rms)
         if outcome[0] != OK or outcome[5] > max_sigma:
