@@ -127,9 +127,9 @@ def test_a_gap_over_a_whole_face_leaves_its_neighbours_to_place_it(rng):
 
 
 def test_a_hidden_face_hypothesis_is_the_estimate_of_the_gauge_without_that_face(rng):
-    """The compiled partial view (partial_kernel.estimate_partial) detects the corners either side of the gap and
-    estimates the gauge without the face from them: to the bit the estimate the estimator gives that gauge
-    directly, with the gap marked in its options. With the corner model: the dense fit of a partial view fits the
+    """The compiled partial view (partial_kernel.estimate_partial, inside profile_kernel.estimate) detects the
+    corners either side of the gap and estimates the gauge without the face from them: to the bit the estimate
+    the estimator gives that gauge directly, with the gap marked in its options. With the corner model: the dense fit of a partial view fits the
     real gauge's faces, which the direct estimate of the reduced gauge does not know."""
     from profile_pose_ros.core.estimation.hidden_face import _gauge_without, _unbounded
     from profile_pose_ros.core.estimation.result import EstimatorOptions
@@ -256,9 +256,11 @@ def test_two_faces_beyond_the_view_leave_the_run_of_faces_seen(rng, refine_model
 def test_the_partial_tables_hold_the_ridges_of_every_reduced_gauge(gauge):
     """What the compiled partial view reads for a gauge without a face, or with a run of faces in view, is that
     Gauge's own ridges; NaN where the faces either side never meet (the paper gauge's faces 2 and 4)."""
+    from profile_pose_ros.core.compiled.codes import MAX_HIDDEN_IN_A_GAP
     from profile_pose_ros.core.estimation.hidden_face import partial_tables
 
-    hidden, in_view = partial_tables(gauge)
+    tables = partial_tables(gauge)
+    hidden, in_view = tables[:MAX_HIDDEN_IN_A_GAP], tables[MAX_HIDDEN_IN_A_GAP:]
     n = gauge.n_ridges
     missing = []
     for face in range(1, n):
@@ -273,7 +275,7 @@ def test_the_partial_tables_hold_the_ridges_of_every_reduced_gauge(gauge):
     for first, last in ((0, n - 1), (1, n)):
         seen = gauge.faces_in_view(first, last)
         assert np.array_equal(in_view[first, last, :last - first], np.column_stack([seen.q, seen.u, seen.w]))
-    assert partial_tables(gauge)[0] is hidden  # made once per gauge
+    assert partial_tables(gauge) is tables and not tables.flags.writeable  # made once per gauge, shared
 
 
 def test_a_gap_that_hides_no_face_is_not_explained_by_one(gauge, rng):

@@ -9,41 +9,52 @@ import pytest
 
 from profile_pose_ros.core import EstimatorOptions, render_profile, sample_pose
 from profile_pose_ros.core.compiled import aot, caches
-from profile_pose_ros.core.compiled import pipeline_kernel
+from profile_pose_ros.core.compiled import profile_kernel
+from profile_pose_ros.core.compiled.codes import PARTIAL_NONE
 from profile_pose_ros.core.design.gauge_design import random_gauge
+from profile_pose_ros.core.estimation.hidden_face import partial_view_inputs
 from profile_pose_ros.core.estimation.result import position_sigma
+from profile_pose_ros.core.model.render import true_corners
+from profile_pose_ros.tools.robustness import with_gap
 
 
-def run(kernel, points, gauge, opt):
+def run(kernel, points, gauge, options):
     n = gauge.n_ridges
-    outs = [np.empty((n, 2)), np.empty((3, 3)), np.empty(3), np.empty((6, 6)), np.empty((3, 3)), np.empty(3),
-            np.empty((n, 2)), np.empty((n, 2)), np.zeros(4)]
-    status = kernel(points, gauge.q, gauge.u, gauge.w, *gauge.kernel_faces, gauge.width, gauge.length, opt, *outs)
+    # NaN where a call writes nothing (a partial view's rows beyond the corners it saw)
+    outs = [np.full(shape, np.nan) for shape in ((n, 2), (3, 3), 3, (6, 6), (3, 3), 3, (n, 2), (n, 2))]
+    outs += [np.zeros(4), np.full(6, np.nan)]
+    status = kernel(points, gauge.q, gauge.u, gauge.w, *gauge.kernel_faces, gauge.width, gauge.length,
+                    options.kernel_vector, *partial_view_inputs(gauge, options), *outs)
     return status, outs
 
 
 def test_prebuilt_and_jit_kernels_agree(gauge, rng):
     """On the shipped gauge (one call, well determined) and on random five-ridge gauges, where about half
     the poses are poorly determined and the basin search runs inside the call; with the corner model and
-    with the dense refinement in the same call."""
+    with the dense refinement in the same call; and on every third profile a gap, whose partial view (a face
+    it hides, faces out of view) is tried in the same call too."""
     module = aot.load()
     assert module is not None, "the prebuilt estimator could not be built on this machine"
-    searched = 0
+    searched = partial = 0
     for k, other in enumerate([gauge] + [random_gauge(5, rng) for _ in range(3)]):
-        opt = EstimatorOptions(refine_model=("corners", "dense")[k % 2]).kernel_vector
-        for _ in range(15):
-            points = render_profile(other, *sample_pose(other, rng), noise_std=5e-6, rng=rng)
-            (status_a, outs_a), (status_j, outs_j) = (run(module.estimate, points, other, opt),
-                                                      run(pipeline_kernel.estimate, points, other, opt))
-            assert status_a[0] == status_j[0] and status_a[6] == status_j[6]  # same decision, same search
+        options = EstimatorOptions(refine_model=("corners", "dense")[k % 2])
+        for i in range(15):
+            rotation, t = sample_pose(other, rng)
+            points = render_profile(other, rotation, t, noise_std=5e-6, rng=rng)
+            if i % 3 == 0:
+                points = with_gap(points, true_corners(other, rotation, t)[:, 0], ("over", "between")[i % 2], rng)
+            (status_a, outs_a), (status_j, outs_j) = (run(module.estimate, points, other, options),
+                                                      run(profile_kernel.estimate, points, other, options))
+            assert status_a[0] == status_j[0] and status_a[6:] == status_j[6:]  # same decision, search, hypothesis
             searched += status_a[6] > 0
+            partial += status_a[8] != PARTIAL_NONE
             if status_a[0] == 0:
                 # the compiled largest position standard deviation is estimator.position_sigma's
                 assert status_a[5] == status_j[5] == pytest.approx(position_sigma(outs_a[3][:3, :3]), rel=1e-12)
             for a, j in zip(outs_a, outs_j):
                 assert np.allclose(a, j, rtol=1e-12, atol=1e-15, equal_nan=True)
-    assert searched > 0
-    status, _ = run(module.estimate, np.full((100, 2), np.nan), gauge, EstimatorOptions().kernel_vector)
+    assert searched > 0 and partial > 0
+    status, _ = run(module.estimate, np.full((100, 2), np.nan), gauge, EstimatorOptions())
     assert status[0] != 0 and np.isnan(status[5])
 
 

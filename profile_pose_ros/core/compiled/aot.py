@@ -95,8 +95,8 @@ def load(timeout: float = 900.0):
 
 
 def build_into(directory: Path) -> None:
-    """Compile pipeline_kernel.estimate, partial_kernel.estimate_partial, estimate_kernel.refine_pose and .detect,
-    decode_kernel.decode_xz and dense_kernel.refine_dense with numba.pycc (in its own process: it loads LLVM)."""
+    """Compile profile_kernel.estimate, estimate_kernel.refine_pose and .detect, decode_kernel.decode_xz and
+    dense_kernel.refine_dense with numba.pycc (in its own process: it loads LLVM)."""
     import warnings
 
     from numba import types
@@ -105,37 +105,26 @@ def build_into(directory: Path) -> None:
         warnings.simplefilter("ignore")
         from numba.pycc import CC
 
-    from . import decode_kernel, dense_kernel, estimate_kernel, partial_kernel, pipeline_kernel
+    from . import decode_kernel, dense_kernel, estimate_kernel, profile_kernel
 
     f8 = types.float64
     array2, array1 = types.Array(f8, 2, "C"), types.Array(f8, 1, "C")
     frozen2, frozen1 = types.Array(f8, 2, "C", readonly=True), types.Array(f8, 1, "C", readonly=True)
-    signature = types.Tuple((types.int64, types.int64, f8, f8, f8, f8, types.int64))(
-        array2, frozen2, frozen1, frozen1, array2, array1, array1, array1, f8, f8, frozen1, array2, array2, array1,
-        array2, array2, array1, array2, array2, array1)
+    boolean, int64 = types.boolean, types.int64
+    frozen4 = types.Array(f8, 4, "C", readonly=True)
+    signature = types.Tuple((int64, int64, f8, f8, f8, f8, int64, int64, int64, int64, int64, int64))(
+        array2, frozen2, frozen1, frozen1, array2, array1, array1, array1, f8, f8, frozen1, frozen2, frozen4, f8, f8,
+        array2, array2, array1, array2, array2, array1, array2, array2, array1, array1)
     compiler = CC(MODULE)
     compiler.output_dir = str(directory)
     compiler.target_cpu = "host"  # built on the machine that runs it
 
     @compiler.export("estimate", signature)
-    def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, rot, t, cov, cf_rot,
-                 cf_t, cf_res, res, info):
-        return pipeline_kernel.estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt,
-                                        corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
-
-    boolean, int64 = types.boolean, types.int64
-    array4 = types.Array(f8, 4, "C")
-    partial_signature = types.Tuple((int64, int64, f8, f8, f8, f8, int64, int64))(
-        array2, frozen2, frozen1, frozen1, array2, array1, array1, array1, f8, f8, frozen1, frozen1, array4, array4, f8,
-        f8, array2, array2, array1, array2, array2, array1, array2, array2, array1, types.Array(int64, 1, "C"), array1)
-
-    @compiler.export("estimate_partial", partial_signature)
-    def estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, relaxed, unsearched,
-                         hidden_table, view_table, max_sigma, margin, corners, rot, t, cov, cf_rot, cf_t, cf_res, res,
-                         info, which, where):
-        return partial_kernel.estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
-                                               relaxed, unsearched, hidden_table, view_table, max_sigma, margin,
-                                               corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info, which, where)
+    def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, partial_opt, tables,
+                 max_sigma, margin, corners, rot, t, cov, cf_rot, cf_t, cf_res, res, info, where):
+        return profile_kernel.estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt,
+                                       partial_opt, tables, max_sigma, margin, corners, rot, t, cov, cf_rot, cf_t,
+                                       cf_res, res, info, where)
 
     refine_signature = types.Tuple((int64, int64))(
         frozen2, frozen1, frozen1, array2, array2, array1, array2, boolean, int64, boolean, array2, array1, array1,

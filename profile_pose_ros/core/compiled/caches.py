@@ -15,8 +15,8 @@ from importlib.metadata import version
 from pathlib import Path
 
 SOURCES = ("compiled/estimate_kernel.py", "compiled/search_kernel.py", "compiled/pipeline_kernel.py",
-           "compiled/partial_kernel.py", "compiled/codes.py", "compiled/dense_kernel.py", "compiled/decode_kernel.py",
-           "compiled/kernel.py", "model/sym3.py")
+           "compiled/partial_kernel.py", "compiled/profile_kernel.py", "compiled/codes.py", "compiled/dense_kernel.py",
+           "compiled/decode_kernel.py", "compiled/kernel.py", "model/sym3.py")
 
 
 def _user_cache() -> Path:

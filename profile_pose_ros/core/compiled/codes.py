@@ -33,12 +33,12 @@ AMBIGUOUS_DISTANCE = 5.0
 # decode_xz statuses (its count says how many points)
 DECODED, OFF_PLANE, INFINITE, ALL_INVALID = 0, 1, 2, 3
 
-# partial views (partial_kernel.py, estimation/hidden_face.py)
+# partial views (partial_kernel.py, profile_kernel.py, estimation/hidden_face.py)
 GAP_PITCHES = 3.0  # a run between two valid points wider than this many point pitches is a gap, not the spacing
 MIN_RIDGES = 4  # the fewest the estimator solves (model.gauge.MIN_RIDGES): a gauge seen in part must keep as many
 # the most adjacent faces one gap may hide: two narrow faces side by side under a gap over their corner
 MAX_HIDDEN_IN_A_GAP = 2
-# which hypothesis decided (estimate_partial's which[0]) ...
+# whose estimate profile_kernel.estimate returns (which[0]): the whole gauge's, or which hypothesis decided ...
 PARTIAL_NONE, PARTIAL_HIDDEN, PARTIAL_IN_VIEW, PARTIAL_AMBIGUOUS = 0, 1, 2, 3
 # ... and, for faces a gap hides, what became of its pose (which[3])
 VERDICT_ACCEPTED, VERDICT_PARALLEL, VERDICT_REFUSED, VERDICT_IMPRECISE, VERDICT_OUTSIDE, VERDICT_WHERE_POINTS = range(6)

@@ -1,5 +1,5 @@
 """Corner detection, the closed form and the refinement: the estimator's only implementation of them, in the
-subset of Python numba compiles (pipeline_kernel.estimate joins them into one call per profile).
+subset of Python numba compiles (profile_kernel.estimate joins them into one call per profile).
 
 The same source runs prebuilt, JIT-compiled or uncompiled (loader.py); tools/numpy_baseline.py is the plain numpy
 baseline Table III times against, not a second implementation to keep equal. Hand-written loops stand where a
@@ -338,9 +338,12 @@ def profile_gaps(points, pitches, gaps):
 
 
 @kernel(**JIT)
-def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
-    """Corner detection; returns (status, n_lines, fit_rms). info carries numbers for the reason; lines_out
-    ((n_corners + 1, 10), rows as _fit_line's) gets the face fits when it succeeds."""
+def _segments(points, opt):
+    """What every detection of one profile shares, whatever corner count it asks for: the valid points (glints
+    dropped) and the line fits of their RDP segments before any are merged. A partial view asks for several
+    counts and gaps (partial_kernel.py), and this is most of a detection's time. Returns (px, pz, increasing,
+    lines, count, work, index_work): x strictly increasing or not (no segments then), the first `count` rows of
+    lines (rows as _fit_line's), and _fit_line's scratch for the merges."""
     n_all = points.shape[0]
     px = np.empty(n_all)
     pz = np.empty(n_all)
@@ -354,15 +357,16 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
         n = _drop_spikes(px, pz, n, opt[O_SPIKE])
     px = px[:n]
     pz = pz[:n]
-    min_seg = int(opt[O_MINSEG])
-    needed = (n_corners + 1) * min_seg
-    if n < needed:
-        info[0] = n
-        info[1] = needed
-        return TOO_FEW_POINTS, 0, np.nan
+    work = np.empty((3, n))
+    index_work = np.empty((2, n), dtype=np.int64)
+    increasing = True
     for i in range(n - 1):
         if px[i + 1] - px[i] <= 0:
-            return X_NOT_INCREASING, 0, np.nan
+            increasing = False
+            break
+    min_seg = int(opt[O_MINSEG])
+    if not increasing or n < max(2 * min_seg, 2):  # no corner count can be detected (too few points for one)
+        return px, pz, increasing, np.empty((1, 10)), 0, work, index_work
     keep = np.empty(n, dtype=np.bool_)
     stack = np.empty(2 * n + 4, dtype=np.int64)
     _rdp(px, pz, opt[O_EPS], keep, stack, np.empty(n))
@@ -371,8 +375,6 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
         if keep[i]:
             n_vertices += 1
     lines = np.empty((max(n_vertices - 1, 1), 10))
-    work = np.empty((3, n))
-    index_work = np.empty((2, n), dtype=np.int64)
     count = 0
     prev = -1
     for i in range(n):
@@ -381,6 +383,32 @@ def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
                 _fit_line(px, pz, prev, i, opt, lines, count, work, index_work)
                 count += 1
             prev = i
+    return px, pz, increasing, lines, count, work, index_work
+
+
+@kernel(**JIT)
+def _detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
+    """Corner detection; returns (status, n_lines, fit_rms). info carries numbers for the reason; lines_out
+    ((n_corners + 1, 10), rows as _fit_line's) gets the face fits when it succeeds."""
+    return _detect_in(_segments(points, opt), n_corners, opt, corners, jac, line_var, info, lines_out)
+
+
+@kernel(**JIT)
+def _detect_in(segments, n_corners, opt, corners, jac, line_var, info, lines_out):
+    """_detect from the profile's _segments; opt may differ from theirs in what only merging and the corners
+    read (the gap a face hides behind, O_GAP)."""
+    px, pz, increasing, fitted, fitted_count, work, index_work = segments
+    n = px.shape[0]
+    min_seg = int(opt[O_MINSEG])
+    needed = (n_corners + 1) * min_seg
+    if n < needed:
+        info[0] = n
+        info[1] = needed
+        return TOO_FEW_POINTS, 0, np.nan
+    if not increasing:
+        return X_NOT_INCREASING, 0, np.nan
+    lines = fitted.copy()  # merged below; the segments serve the profile's next detection too
+    count = fitted_count
     # merge nearly collinear neighbours, closest pair first
     while count > 1:
         best = np.inf
@@ -1108,7 +1136,7 @@ def _unstack_residuals(r, out):
 @kernel(**JIT)
 def detect(points, n_corners, opt, corners, jac, line_var, info, lines_out):
     """Corner detection alone (stages.detect_corners: studies, the NEES tools, the wrong-minimum check); on a
-    writable copy of opt, as the estimate detects (pipeline_kernel.estimate: one compiled detection for all)."""
+    writable copy of opt, as the estimate detects (profile_kernel.estimate: one compiled detection for all)."""
     return _detect(points, n_corners, opt.copy(), corners, jac, line_var, info, lines_out)
 
 

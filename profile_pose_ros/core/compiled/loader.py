@@ -26,7 +26,8 @@ _kernel_name = ""
 
 
 def kernels():
-    """The compiled functions in use (estimate, estimate_partial, detect, refine_pose, decode_xz, refine_dense): loaded (and, the first time on a machine, built) on first need."""
+    """The compiled functions in use (estimate, detect, refine_pose, decode_xz, refine_dense): loaded (and, the
+    first time on a machine, built) on first need."""
     global _kernels, _kernel_name
     if _kernels is None:
         choice = os.environ.get("PROFILE_POSE_KERNEL", "auto")
@@ -40,12 +41,11 @@ def kernels():
         else:
             if choice == "python":
                 _uncompiled()
-            from . import estimate_kernel, partial_kernel, pipeline_kernel
+            from . import estimate_kernel, profile_kernel
             from .decode_kernel import decode_xz as jit_decode_xz
             from .dense_kernel import refine_dense
 
-            _kernels = SimpleNamespace(estimate=pipeline_kernel.estimate,
-                                       estimate_partial=partial_kernel.estimate_partial,
+            _kernels = SimpleNamespace(estimate=profile_kernel.estimate,
                                        detect=estimate_kernel.detect,
                                        refine_pose=estimate_kernel.refine_pose,
                                        decode_xz=jit_decode_xz,
@@ -56,7 +56,7 @@ def kernels():
 
 KERNEL_MODULES = tuple(f"{__package__}.{name}"
                        for name in ("estimate_kernel", "search_kernel", "pipeline_kernel", "partial_kernel",
-                                    "decode_kernel", "dense_kernel"))
+                                    "profile_kernel", "decode_kernel", "dense_kernel"))
 
 
 def _uncompiled() -> None:

@@ -1,6 +1,7 @@
-"""A partial view in one compiled call: the hypotheses of estimation/hidden_face.py (its docstring says what
-they are and why), tried in its order, with the checks that refuse them. Every hypothesis is a detection and an
-estimate of a few tens of microseconds; run from Python, the calls between them cost as much again.
+"""A partial view, inside the profile's one compiled call (profile_kernel.py): the hypotheses of
+estimation/hidden_face.py (its docstring says what they are and why), tried in its order, with the checks that
+refuse them. Every hypothesis is a detection and an estimate of a few tens of microseconds; run from Python, the
+calls between them cost as much again.
 
 The reduced gauges' ridges come in as tables the Python side makes once per gauge (hidden_face.partial_tables),
 from the Gauge objects themselves: table[.., :m] holds the m ridges' [q, u, w], NaN where that gauge does not
@@ -15,7 +16,7 @@ import numpy as np
 from .codes import (GAP_PITCHES, JIT, MAX_HIDDEN_IN_A_GAP, MIN_RIDGES, O_GAP, O_MINSEG, OK, PARTIAL_AMBIGUOUS,
                     PARTIAL_HIDDEN, PARTIAL_IN_VIEW, PARTIAL_NONE, VERDICT_ACCEPTED, VERDICT_IMPRECISE,
                     VERDICT_OUTSIDE, VERDICT_PARALLEL, VERDICT_REFUSED, VERDICT_WHERE_POINTS, WRONG_CORNER_COUNT)
-from .estimate_kernel import _detect, profile_gaps
+from .estimate_kernel import _detect_in, profile_gaps
 from .kernel import kernel
 from .pipeline_kernel import estimate_detected
 
@@ -109,11 +110,13 @@ def _hidden_verdict(outcome, q, u, w, buffers, virtual, face, count, before, aft
 
 
 @kernel(**JIT)
-def estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, relaxed, unsearched,
-                     hidden_table, view_table, max_sigma, margin, corners, rot_out, t_out, cov_out, cf_rot, cf_t,
-                     cf_res, res_out, info, which, where):
+def estimate_partial(points, segments, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, relaxed,
+                     unsearched, hidden_table, view_table, max_sigma, margin, corners, rot_out, t_out, cov_out, cf_rot,
+                     cf_t, cf_res, res_out, info, which, where):
     """The pose of a profile with faces hidden by a gap or out of view, or a refusal saying why, or nothing.
 
+    segments: the profile's estimate_kernel._segments, which every detection here starts from (relaxed and
+    unsearched differ from the options they were made with only in what detection does not read).
     relaxed: the kernel vector for a gap's hypotheses (hidden_face._unbounded); unsearched: for the placements
     of a run of faces in view (hidden_face._without_search); hidden_table[count - 1, face]: the ridges of
     gauge.without_face(face, count); view_table[first, last]: those of gauge.faces_in_view(first, last);
@@ -137,8 +140,7 @@ def estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width,
     # the faces a gap's detection finds do not depend on how many corners it was asked for (only whether that is
     # the count found): once known, the hypotheses that count cannot meet need no detection of their own
     faces_found = np.full(MOST_GAPS, -1)
-    # writable copies, as pipeline_kernel.estimate makes: the estimate is compiled once for every entry
-    vector, unsearched = relaxed.copy(), unsearched.copy()
+    vector = relaxed.copy()  # its gap is set per hypothesis
     for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
         m = n - count
         if m < MIN_RIDGES:
@@ -151,7 +153,7 @@ def estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width,
             vector[O_GAP] = 0.5 * (before + after)
             buffers = _buffers(m)
             d_corners, jac, line_var, lines, _, _, _, _, _, _, _, d_info = buffers
-            status, _, fit_rms = _detect(points, m, vector, d_corners, jac, line_var, d_info, lines)
+            status, _, fit_rms = _detect_in(segments, m, vector, d_corners, jac, line_var, d_info, lines)
             faces_found[k] = m + 1 if status == OK else (int(d_info[1]) if status == WRONG_CORNER_COUNT else -1)
             if faces_found[k] == 0:
                 faces_found[k] = -1
@@ -182,12 +184,13 @@ def estimate_partial(points, q, u, w, normals, offsets, ridge_q, ridge_u, width,
     # faces, one shorter per corner missing
     m = n - 1
     buffers = _buffers(m)
-    status, _, fit_rms = _detect(points, m, unsearched, buffers[0], buffers[1], buffers[2], buffers[11], buffers[3])
+    status, _, fit_rms = _detect_in(segments, m, unsearched, buffers[0], buffers[1], buffers[2], buffers[11],
+                                    buffers[3])
     if status == WRONG_CORNER_COUNT and MIN_RIDGES + 1 <= buffers[11][1] < n:
         m = int(buffers[11][1]) - 1
         buffers = _buffers(m)
-        status, _, fit_rms = _detect(points, m, unsearched, buffers[0], buffers[1], buffers[2], buffers[11],
-                                     buffers[3])
+        status, _, fit_rms = _detect_in(segments, m, unsearched, buffers[0], buffers[1], buffers[2], buffers[11],
+                                        buffers[3])
     if status != OK:
         return none
     lines = buffers[3]

@@ -1,9 +1,8 @@
-"""The estimator in one compiled call: corners, closed form (a four-ridge gauge's several starting poses,
-each refined, the lowest minimum kept unless a rival fits about as well), refinement, the basin search
-when the pose is poorly determined or its checks refuse it, the checks, and for a poorly determined pose
-its covariance by the unscented transform; or, with the dense model (or auto, for a poorly determined corner
-pose), the dense refinement from that pose and the same checks of its solution. A profile costs one dispatch
-from Python, the poorly determined ones too.
+"""The estimate of a whole gauge from its detected corners (profile_kernel.estimate detects them): closed form
+(a four-ridge gauge's several starting poses, each refined, the lowest minimum kept unless a rival fits about as
+well), refinement, the basin search when the pose is poorly determined or its checks refuse it, the checks, and
+for a poorly determined pose its covariance by the unscented transform; or, with the dense model (or auto, for
+a poorly determined corner pose), the dense refinement from that pose and the same checks of its solution.
 """
 from __future__ import annotations
 
@@ -18,8 +17,8 @@ from .codes import (AMBIGUOUS, AMBIGUOUS_COST, AMBIGUOUS_DISTANCE, COVARIANCE_CA
                     O_MAXREPROJ, O_NOISE, O_REFINE, O_SEARCH, O_SEARCHSIG, O_WEIGHTED, OK, OUTSIDE_FOOTPRINT,
                     REPROJECTION, REWEIGHT_ROUNDS)
 from .dense_kernel import refine_dense
-from .estimate_kernel import (CURVED_ABOVE, _add_corner_valley_curvature, _cholesky, _closed_form, _detect, _quadratic,
-                              _refine, _residuals, _spd_inverse, _unstack_residuals)
+from .estimate_kernel import (CURVED_ABOVE, _add_corner_valley_curvature, _cholesky, _closed_form, _quadratic, _refine,
+                              _residuals, _spd_inverse, _unstack_residuals)
 from .kernel import kernel
 from .search_kernel import _cost, four_ridge_starts, search_minima
 
@@ -185,31 +184,12 @@ def _unset(rot_out, t_out, cov_out):
 
 
 @kernel(**JIT)
-def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, rot_out, t_out, cov_out,
-             cf_rot, cf_t, cf_res, res_out, info):
-    """The whole pipeline. Returns (status, iterations, fit_rms, reprojection_error, cf_reprojection_error,
-    position_sigma, search_starts); position_sigma is NaN unless a pose is accepted, search_starts 0 unless
-    the basin search ran."""
-    # writable copies of the caller's read-only arrays: numba compiles a function once per argument type, and
-    # read-only is a type of its own; partial_kernel's hypotheses pass arrays made in the call, so with these the
-    # whole pipeline below is compiled once for both entries, not twice (a prebuilt build ~50 s longer)
-    q, u, w, opt = q.copy(), u.copy(), w.copy(), opt.copy()
-    n = u.shape[0]
-    jac = np.empty((2 * n, 2 * (n + 1)))
-    line_var = np.empty(2 * (n + 1))
-    status, n_lines, fit_rms = _detect(points, n, opt, corners, jac, line_var, info, np.empty((n + 1, 10)))
-    if status != OK:
-        _unset(rot_out, t_out, cov_out)
-        return status, 0, np.nan, np.nan, np.nan, np.nan, 0
-    return estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, jac,
-                             line_var, fit_rms, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out, info)
-
-
-@kernel(**JIT)
 def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, jac, line_var,
                       fit_rms, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out, info):
-    """estimate from a detection already made (corners, jac, line_var and fit_rms as estimate_kernel.detect
-    returns them, with this opt): a partial view tries several gauges on one detection (partial_kernel.py)."""
+    """The estimate from a detection already made (corners, jac, line_var and fit_rms as estimate_kernel.detect
+    returns them, with this opt): a partial view tries several gauges on one detection (partial_kernel.py). Returns
+    (status, iterations, fit_rms, reprojection_error, cf_reprojection_error, position_sigma, search_starts);
+    position_sigma is NaN unless a pose is accepted, search_starts 0 unless the basin search ran."""
     n = u.shape[0]
     _unset(rot_out, t_out, cov_out)
     corner_cov = np.empty((2 * n, 2 * n))

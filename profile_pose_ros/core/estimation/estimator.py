@@ -16,7 +16,7 @@ from ..compiled import codes
 from ..compiled.loader import kernels
 from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
-from .hidden_face import estimate_past_a_hidden_face, partial_tables
+from .hidden_face import partial_view_estimate, partial_view_inputs
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_ambiguous,
                      reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected)
 from .residuals import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
@@ -34,14 +34,7 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
     options = options or EstimatorOptions()
     if overrides:
         options = options.with_changes(**overrides)
-    estimate = _checked_precision(_estimate_in_one_call(points, gauge, options), options)
-    if not estimate.ok and estimate.corners.size == 0 and options.hidden_faces:
-        # corner detection refused it: perhaps a gap hides a whole face. The corners then see the gauge
-        # without that face, but the profile's points still lie on the real gauge: the dense refinement fits
-        # them to all its faces (with the reduced gauge it cut the points of a face narrowly in view after all
-        # and settled far off: docs/estimator.md)
-        return estimate_past_a_hidden_face(points, gauge, options.for_a_partial_view, _described) or estimate
-    return estimate
+    return _estimate_in_one_call(points, gauge, options)
 
 
 def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> PoseEstimate:
@@ -90,7 +83,10 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
 
 def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
     """The whole estimate in a single compiled call (corners, closed form or four-ridge starts, refinement,
-    basin search, checks)."""
+    basin search, checks) and, when corner detection refuses the profile, the partial view's (hidden_face.py):
+    perhaps a gap hides a whole face. Its corners then see the gauge without that face, but the profile's points
+    still lie on the real gauge: the dense refinement fits them to all its faces (with the reduced gauge it cut
+    the points of a face narrowly in view after all and settled far off: docs/estimator.md)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         return PoseEstimate(False, f"corner detection: profile must be an (N, 2) array, got shape {points.shape}")
@@ -98,13 +94,19 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     # corners, rotation, t, covariance (NaN-filled by the kernel unless ok), closed form's, residuals, info
     outputs = (np.empty((n, 2)), np.empty((3, 3)), np.empty(3), np.empty((6, 6)), np.empty((3, 3)), np.empty(3),
                np.empty((n, 2)), np.empty((n, 2)), np.zeros(4))
+    where = np.empty(6)  # a partial view's numbers for its reason
     start = time.perf_counter()
     try:
-        outcome = kernels().estimate(points, gauge.q, gauge.u, gauge.w, *gauge.kernel_faces, gauge.width,
-                                     gauge.length, options.kernel_vector, *outputs)
+        result = kernels().estimate(points, gauge.q, gauge.u, gauge.w, *gauge.kernel_faces, gauge.width, gauge.length,
+                                    options.kernel_vector, *partial_view_inputs(gauge, options), *outputs, where)
     except np.linalg.LinAlgError as exc:
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
-    return _from_outcome(outcome, outputs, gauge, options, {"total": time.perf_counter() - start})
+    timings = {"total": time.perf_counter() - start}
+    outcome, m, which = result[:7], result[7], result[8:]
+    if which[0] == codes.PARTIAL_NONE:
+        return _described(outcome, outputs, gauge, options, timings)
+    outputs = (outputs[0][:m], *outputs[1:6], outputs[6][:m], outputs[7][:m], outputs[8])
+    return partial_view_estimate(outcome, outputs, which, where, gauge, options, _described, timings)
 
 
 def _from_outcome(outcome: tuple, outputs: tuple, gauge: Gauge, options: EstimatorOptions,
@@ -128,7 +130,7 @@ def _from_outcome(outcome: tuple, outputs: tuple, gauge: Gauge, options: Estimat
 
 def _described(outcome: tuple, outputs: tuple, gauge: Gauge, options: EstimatorOptions,
                timings: dict) -> PoseEstimate:
-    """A partial view's estimate (hidden_face.py), checked as every estimate is."""
+    """The checked estimate of a compiled outcome: the whole gauge's, or a partial view's (hidden_face.py)."""
     return _checked_precision(_from_outcome(outcome, outputs, gauge, options, timings), options)
 
 
@@ -142,11 +144,8 @@ def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
     options = options or EstimatorOptions()
     rotation, translation = sample_pose(gauge, np.random.default_rng(0))
     profile = render_profile(gauge, rotation, translation)
-    _estimate_in_one_call(profile, gauge, options)
+    _estimate_in_one_call(profile, gauge, options)  # also makes the partial views' gauges
     _estimate_in_one_call(np.full((10, 2), np.nan), gauge, options)  # a failure path too
-    if options.hidden_faces:
-        partial_tables(gauge)
-        estimate_past_a_hidden_face(profile, gauge, options.for_a_partial_view, _described)  # its kernel's entry
     return time.perf_counter() - start
 
 

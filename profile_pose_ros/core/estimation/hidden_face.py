@@ -17,7 +17,6 @@ the hypothesis is refused.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import replace
 from functools import lru_cache
 from typing import Callable
@@ -26,7 +25,6 @@ import numpy as np
 
 from ..compiled import codes
 from ..compiled.codes import MAX_HIDDEN_IN_A_GAP, MIN_RIDGES
-from ..compiled.loader import kernels
 from ..model.gauge import Gauge, GaugeError
 from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
 
@@ -34,37 +32,48 @@ from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
 # outcomes
 Describe = Callable[[tuple, tuple, Gauge, EstimatorOptions, dict], PoseEstimate]
 
+_NO_TABLES = np.empty((0, 1, 1, 5))  # tries no partial view
+_NO_TABLES.setflags(write=False)
+_KEPT_OPTIONS = 8
 
-def estimate_past_a_hidden_face(points: np.ndarray, gauge: Gauge, options: EstimatorOptions, describe: Describe
-                                ) -> PoseEstimate | None:
-    """The pose with one or two adjacent faces hidden by a gap or faces out of view at the ends, or a refusal
-    saying why not, or None when the profile looks like none of these: the caller's refusal stands."""
+
+def partial_view_inputs(gauge: Gauge, options: EstimatorOptions) -> tuple:
+    """What the compiled estimate (profile_kernel.estimate) needs to try a partial view of `gauge` under `options`:
+    the relaxed and unsearched option vectors as rows, the reduced gauges' ridge tables, the precision gate and
+    the footprint margin. Made once per gauge and options object, as every profile needs it; no tables when the
+    options try no partial view."""
+    kept = gauge.__dict__.setdefault("_partial_view_inputs", {})  # beside partial_tables' (Gauge._with_faces)
+    entry = kept.get(id(options))  # each entry holds its options: an id in the dict is not reused
+    if entry is None:
+        if len(kept) >= _KEPT_OPTIONS:  # options made per call (estimate_pose's overrides) are not kept for ever
+            kept.clear()
+        partial = options.for_a_partial_view
+        vectors = np.stack([_unbounded(partial).kernel_vector, _without_search(partial).kernel_vector])
+        vectors.setflags(write=False)
+        tables = partial_tables(gauge) if options.hidden_faces and gauge.n_ridges >= MIN_RIDGES + 1 else _NO_TABLES
+        entry = kept[id(options)] = (options, (vectors, tables, partial.max_position_sigma, partial.footprint_margin))
+    return entry[1]
+
+
+def partial_view_estimate(outcome: tuple, outputs: tuple, which: tuple, where: np.ndarray, gauge: Gauge,
+                          options: EstimatorOptions, describe: Describe, timings: dict) -> PoseEstimate:
+    """The estimate of a partial view the compiled estimate decided (its outcome and outputs; which = (kind, a,
+    b, verdict), kind not PARTIAL_NONE) for `gauge` under `options`: one or two adjacent faces hidden by a gap,
+    faces out of view at the ends, or a refusal saying why."""
     n = gauge.n_ridges
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    if n < MIN_RIDGES + 1 or points.ndim != 2 or points.shape[1] != 2:  # without a face n - 1 >= MIN_RIDGES remain
-        return None
-    relaxed, unsearched = _unbounded(options), _without_search(options)
-    outputs = (np.empty((n, 2)), np.empty((3, 3)), np.empty(3), np.empty((6, 6)), np.empty((3, 3)), np.empty(3),
-               np.empty((n, 2)), np.empty((n, 2)), np.zeros(4))
-    which, where = np.zeros(4, dtype=np.int64), np.empty(6)
-    start = time.perf_counter()
-    *outcome, m = kernels().estimate_partial(points, gauge.q, gauge.u, gauge.w, *gauge.kernel_faces, gauge.width,
-                                             gauge.length, relaxed.kernel_vector, unsearched.kernel_vector,
-                                             *partial_tables(gauge), options.max_position_sigma,
-                                             options.footprint_margin, *outputs, which, where)
-    timings = {"total": time.perf_counter() - start}
-    kind, a, b, verdict = which.tolist()
-    outputs = (outputs[0][:m], *outputs[1:6], outputs[6][:m], outputs[7][:m], outputs[8])
-    if kind == codes.PARTIAL_NONE:
-        return None
+    kind, a, b, verdict = which
+    partial = options.for_a_partial_view
     if kind == codes.PARTIAL_AMBIGUOUS:
         return PoseEstimate(False, f"corner detection: found {a} corners; {b} placements of the faces in view "
                                    f"explain the profile (ambiguous)", timings=timings)
     if kind == codes.PARTIAL_IN_VIEW:
-        found = describe(tuple(outcome), outputs, gauge.faces_in_view(a, b), unsearched, timings)
+        found = describe(outcome, outputs, gauge.faces_in_view(a, b), _without_search(partial), timings)
         one_hidden = {(1, n): 0, (0, n - 1): n}.get((a, b))
-        return replace(found, hidden_face=one_hidden, faces_hidden=0 if one_hidden is None else 1, faces_in_view=(a, b))
-    return _hidden_in_gap(tuple(outcome), outputs, gauge, relaxed, describe, timings, a, b, verdict, where.tolist())
+        found.hidden_face, found.faces_hidden, found.faces_in_view = (one_hidden, 0 if one_hidden is None else 1,
+                                                                      (a, b))  # found is this call's own
+        return found
+    return _hidden_in_gap(outcome, outputs, gauge, _unbounded(partial), describe, timings, a, b, verdict,
+                          where.tolist())
 
 
 def _hidden_in_gap(outcome: tuple, outputs: tuple, gauge: Gauge, relaxed: EstimatorOptions, describe: Describe,
@@ -90,24 +99,27 @@ def _hidden_in_gap(outcome: tuple, outputs: tuple, gauge: Gauge, relaxed: Estima
     return found
 
 
-def partial_tables(gauge: Gauge) -> tuple[np.ndarray, np.ndarray]:
-    """The ridges [q, u, w] of every gauge a partial view can ask for, as estimate_partial takes them:
-    hidden[count - 1, face, :n - count] of gauge.without_face(face, count) (NaN where its faces never meet), and
-    in_view[first, last, :last - first] of gauge.faces_in_view(first, last). Made once per gauge, before the
-    first profile (warm_up): each reduced gauge costs a few hundred microseconds to build and validate."""
+def partial_tables(gauge: Gauge) -> np.ndarray:
+    """The ridges [q, u, w] of every gauge a partial view can ask for, as the compiled estimate takes them (read
+    only): [count - 1, face, :n - count] those of gauge.without_face(face, count) (NaN where its faces never meet),
+    then from row MAX_HIDDEN_IN_A_GAP [MAX_HIDDEN_IN_A_GAP + first, last, :last - first] those of
+    gauge.faces_in_view(first, last). Made once per gauge, before the first profile (warm_up): each reduced gauge
+    costs a few hundred microseconds to build and validate."""
     tables = gauge.__dict__.get("_partial_tables")  # kept beside the gauge's own caches (Gauge._with_faces)
     if tables is None:
         n = gauge.n_ridges
-        hidden, in_view = np.full((MAX_HIDDEN_IN_A_GAP, n + 1, n, 5), np.nan), np.full((n + 1, n + 1, n, 5), np.nan)
+        tables = np.full((MAX_HIDDEN_IN_A_GAP + n + 1, n + 1, n, 5), np.nan)
         for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
             for face in range(1, n - count + 1) if n - count >= MIN_RIDGES else ():
                 without = _gauge_without(gauge, face, count)
                 if without is not None:
-                    hidden[count - 1, face, :n - count] = _ridges(without)
+                    tables[count - 1, face, :n - count] = _ridges(without)
         for shown in range(MIN_RIDGES, n):
             for first in range(n - shown + 1):
-                in_view[first, first + shown, :shown] = _ridges(gauge.faces_in_view(first, first + shown))
-        tables = gauge.__dict__["_partial_tables"] = (hidden, in_view)
+                tables[MAX_HIDDEN_IN_A_GAP + first, first + shown, :shown] = _ridges(gauge.faces_in_view(first,
+                                                                                                   first + shown))
+        tables.setflags(write=False)
+        gauge.__dict__["_partial_tables"] = tables
     return tables
 
 
