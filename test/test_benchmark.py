@@ -84,7 +84,7 @@ def test_quick_study_runs_end_to_end(tmp_path):
 
 
 def test_quick_robustness_runs_every_condition_and_the_shipped_gauges_publish_no_wrong_pose(tmp_path):
-    stdout, data = run_quick("robustness", "robustness.json", tmp_path, "--bound")
+    stdout, data = run_quick("robustness", "robustness.json", tmp_path, "--bound", "--repeats", "2")
     cells = data["cells"]
     conditions = {name.split(" | ")[1] for name in cells}
     assert {"clean", "spikes 5 %", "gap over a corner", "gap between corners", "noise 45 um"} <= conditions
@@ -100,6 +100,9 @@ def test_quick_robustness_runs_every_condition_and_the_shipped_gauges_publish_no
     # and every cell the wrong poses its accepted poses' covariances predict: none of the shipped gauges' clean ones
     assert all(c["wrong_expected"] >= 0 for c in cells.values()) and "expected from the accepted poses" in stdout
     assert shipped["gauge_paper_n5.yaml | clean"]["wrong_expected"] < 1e-3
+    # --repeats: each profile's fastest call beside its first, never slower at any percentile
+    assert all(c["fastest_ms"][k] <= c["time_ms"][k] for c in cells.values() for k in ("median", "p99"))
+    assert "fastest of 2" in stdout
 
 
 def test_the_chance_of_a_wrong_pose_is_the_gaussian_tail_of_its_covariance():
