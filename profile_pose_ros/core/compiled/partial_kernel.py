@@ -53,14 +53,15 @@ def _buffers(m):
 
 
 @kernel(**JIT)
-def _estimate_attempt(points, ridges, normals, offsets, ridge_q, ridge_u, width, length, opt, buffers, fit_rms):
+def _estimate_attempt(points, ridges, normals, offsets, ridge_q, ridge_u, width, length, opt, buffers, fit_rms,
+                      virtual):
     """estimate_detected of a reduced gauge (ridges: (q, u, w)) from the detection in buffers, which it reads
     and does not change: the placements of one run of faces all start from it."""
     q, u, w = ridges
     corners, jac, line_var, _, rot, t, cov, cf_rot, cf_t, cf_res, res, _ = buffers
     info = np.zeros(4)
     outcome = estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, jac,
-                                line_var, fit_rms, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
+                                line_var, fit_rms, virtual, rot, t, cov, cf_rot, cf_t, cf_res, res, info)
     buffers[11][:] = info
     return outcome
 
@@ -174,7 +175,7 @@ def estimate_partial(points, segments, q, u, w, normals, offsets, ridge_q, ridge
                 which[3] = VERDICT_PARALLEL
                 return none
             outcome = _estimate_attempt(points, ridges, normals, offsets, ridge_q, ridge_u, width, length, vector,
-                                        buffers, fit_rms)
+                                        buffers, fit_rms, virtual)
             _keep(buffers, m, corners, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out, info)
             which[3] = _hidden_verdict(outcome, q, u, w, buffers, virtual, face, count, before, after, tolerance,
                                        max_sigma, margin, width, length, where)
@@ -203,7 +204,7 @@ def estimate_partial(points, segments, q, u, w, normals, offsets, ridge_q, ridge
         if not _ridges_of(view_table[first, last], ridges[0], ridges[1], ridges[2]):
             continue  # partial_tables makes every run a detection here can see: a table it did not make explains none
         outcome = _estimate_attempt(points, ridges, normals, offsets, ridge_q, ridge_u, width, length, unsearched,
-                                    buffers, fit_rms)
+                                    buffers, fit_rms, -1)
         if outcome[0] != OK or outcome[5] > max_sigma:
             continue
         rot, t = buffers[4], buffers[5]

@@ -176,6 +176,40 @@ def _dense_stage(points, q, u, w, faces, width, length, opt, corners, rot, t, co
 
 
 @kernel(**JIT)
+def _from_the_real_corners(q, u, w, corners, corner_cov, weighted, max_iterations, virtual):
+    """The lowest minimum of all the corners refined from the starts the real ones give on their own (every
+    corner but `virtual`: the closed form, or four ridges' candidates). Returns (found, rot, t, residuals,
+    covariance, chi2, iterations)."""
+    n = corners.shape[0]
+    m = n - 1
+    sub_q, sub_u, sub_w, sub_corners = np.empty((m, 3)), np.empty(m), np.empty(m), np.empty((m, 2))
+    k = 0
+    for i in range(n):
+        if i != virtual:
+            sub_q[k], sub_u[k], sub_w[k], sub_corners[k] = q[i], u[i], w[i], corners[i]
+            k += 1
+    start_rots, start_ts = np.empty((3, 3, 3)), np.empty((3, 3))
+    count = 0
+    if m == 4:
+        count = four_ridge_starts(sub_q, sub_u, sub_w, sub_corners, start_rots, start_ts)
+    elif m > 4:
+        status, rot, t = _closed_form(sub_q, sub_u, sub_w, sub_corners, np.zeros(4))
+        if status == OK:
+            start_rots[0], start_ts[0], count = rot, t, 1
+    best_rot, best_t, best_r, best_cov = np.empty((3, 3)), np.empty(3), np.empty(2 * n), np.empty((6, 6))
+    best_cost, best_chi2, best_its = np.inf, np.inf, 0
+    cov = np.empty((6, 6))
+    for k in range(count):
+        status, rot, t, r, iterations, chi2 = _refine(q, u, w, corners, start_rots[k], start_ts[k], corner_cov,
+                                                      weighted, max_iterations, True, cov, REWEIGHT_ROUNDS)
+        cost = chi2 if weighted else _quadratic(r, np.eye(2 * n))
+        if status == OK and cost < best_cost:
+            best_rot[:, :], best_t[:], best_r[:], best_cov[:, :] = rot, t, r, cov
+            best_cost, best_chi2, best_its = cost, chi2, iterations
+    return math.isfinite(best_cost), best_rot, best_t, best_r, best_cov, best_chi2, best_its
+
+
+@kernel(**JIT)
 def _unset(rot_out, t_out, cov_out):
     """The outputs NaN: they stay so unless a pose is accepted."""
     rot_out[:, :] = np.nan
@@ -185,11 +219,12 @@ def _unset(rot_out, t_out, cov_out):
 
 @kernel(**JIT)
 def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners, jac, line_var,
-                      fit_rms, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out, info):
+                      fit_rms, virtual, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out, info):
     """The estimate from a detection already made (corners, jac, line_var and fit_rms as estimate_kernel.detect
     returns them, with this opt): a partial view tries several gauges on one detection (partial_kernel.py). Returns
     (status, iterations, fit_rms, reprojection_error, cf_reprojection_error, position_sigma, search_starts);
-    position_sigma is NaN unless a pose is accepted, search_starts 0 unless the basin search ran."""
+    position_sigma is NaN unless a pose is accepted, search_starts 0 unless the basin search ran. virtual: the
+    index of a corner two faces' fits make across a gap (partial_kernel.py), or -1."""
     n = u.shape[0]
     _unset(rot_out, t_out, cov_out)
     corner_cov = np.empty((2 * n, 2 * n))
@@ -267,6 +302,19 @@ def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width
     # A corner pose that is poorly determined, or refused: perhaps a neighbouring basin holds the right minimum.
     # Not for a poorly determined one the dense refinement takes over: fitting every point, it finds its basin
     # from the corner pose as well as from the searched one (docs/estimator.md, Unclean profiles)
+    if opt[O_SEARCH] > 0 and refined and status != OK and virtual >= 0:
+        # a virtual corner, extrapolated far along nearly parallel faces, can skew the closed form into a wrong
+        # basin (corner residuals hundreds of times the noise); the real corners alone start in the right one
+        # far more often, at a fraction of the basin search's cost
+        found, rot2, t2, r2, cov2, chi2_2, its2 = _from_the_real_corners(q, u, w, corners, corner_cov, weighted,
+                                                                         max_it, virtual)
+        if found:  # checked aside: a refusal keeps the numbers of its own pose's check
+            res2 = np.empty_like(res_out)
+            status2, err2 = _check(corners, rot2, t2, r2, chi2_2, refined, width, length, opt, np.zeros(4), res2)
+            if status2 == OK:
+                rot, t, r, iterations, chi2, status, err = rot2, t2, r2, its2, chi2_2, status2, err2
+                cov[:, :] = cov2
+                res_out[:, :] = res2
     if opt[O_SEARCH] > 0 and refined and (status != OK or not dense and not _position_sigma(cov[3:, 3:]) <=
                                           opt[O_SEARCHSIG]):
         best_rot, best_t, best_r, best_cov = np.empty((3, 3)), np.empty(3), np.empty(2 * n), np.empty((6, 6))

@@ -37,7 +37,7 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
     status, _, fit_rms = _detect_in(segments, n, opt, corners, jac, line_var, info, np.empty((n + 1, 10)))
     if status == OK:
         return estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length, opt, corners,
-                                 jac, line_var, fit_rms, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
+                                 jac, line_var, fit_rms, -1, rot_out, t_out, cov_out, cf_rot, cf_t, cf_res, res_out,
                                  info) + (n, PARTIAL_NONE, 0, 0, 0)
     _unset(rot_out, t_out, cov_out)
     refused = (status, 0, np.nan, np.nan, np.nan, np.nan, 0, n, PARTIAL_NONE, 0, 0, 0)
