@@ -158,6 +158,43 @@ def test_a_hidden_face_hypothesis_is_the_estimate_of_the_gauge_without_that_face
     assert compared >= 5
 
 
+def test_a_hypothesis_whose_closed_form_lands_in_a_wrong_basin_starts_again_from_its_real_corners(rng):
+    """The designed gauge with a gap between two corners: now and then the extrapolated virtual corner skews
+    the closed form of the gauge without the hidden face into a wrong basin, and the estimate of that gauge from
+    there, without the basin search, is refused as inconsistent. The estimator starts such a hypothesis again
+    from the real corners alone: accepted, near the truth, without searching."""
+    from profile_pose_ros.core.estimation.hidden_face import _unbounded
+    from profile_pose_ros.core.estimation.result import EstimatorOptions
+
+    gauge = Gauge.from_yaml(config_path("gauge_designed_n6.yaml"))
+    options = EstimatorOptions(refine_model="auto")
+    rescued = 0
+    for _ in range(3000):
+        rotation, t = sample_pose(gauge, rng)
+        corners = true_corners(gauge, rotation, t)[:, 0]
+        k = int(rng.integers(len(corners) - 1))
+        middle, width = 0.5 * (corners[k] + corners[k + 1]), 5e-3
+        points = hidden(render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), middle - width, middle + width)
+        estimate = estimate_pose(points, gauge, options)
+        if estimate.faces_hidden != 1 or estimate.faces_in_view is not None:
+            continue
+        x = points[np.isfinite(points).all(axis=1), 0]
+        widest = int(np.argmax(np.diff(x)))
+        without = gauge.without_face(estimate.hidden_face)
+        direct = estimate_pose(points, without, _unbounded(options).with_changes(
+            virtual_corner_gap=0.5 * (x[widest] + x[widest + 1]), hidden_faces=False, basin_search=False,
+            refine_model="corners"))
+        if direct.ok or "corner residuals" not in direct.reason:
+            continue
+        assert estimate.ok and estimate.search_starts == 0, estimate.reason
+        position, rotation_error = pose_error(estimate.R, estimate.t, rotation, t)
+        assert position < 2e-4 and rotation_error < 1e-3
+        rescued += 1
+        if rescued == 3:
+            break
+    assert rescued == 3
+
+
 def two_narrow_faces_hidden(rng, count: int):
     """(gauge, rotation, t, face, profile) of random seven-ridge gauges, each with a gap over the corner
     between two adjacent narrow faces that takes both faces and their outer corners (all but less than a
