@@ -299,9 +299,6 @@ def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width
     # auto (DENSE_WHEN_POORLY_DETERMINED): the dense refinement where the corners determine the pose poorly
     auto = opt[O_DENSE] == DENSE_WHEN_POORLY_DETERMINED and refined
     dense = opt[O_DENSE] == DENSE_ALWAYS or auto and not _position_sigma(cov[3:, 3:]) <= opt[O_DENSESIG]
-    # A corner pose that is poorly determined, or refused: perhaps a neighbouring basin holds the right minimum.
-    # Not for a poorly determined one the dense refinement takes over: fitting every point, it finds its basin
-    # from the corner pose as well as from the searched one (docs/estimator.md, Unclean profiles)
     if opt[O_SEARCH] > 0 and refined and status != OK and virtual >= 0:
         # a virtual corner, extrapolated far along nearly parallel faces, can skew the closed form into a wrong
         # basin (corner residuals hundreds of times the noise); the real corners alone start in the right one
@@ -315,6 +312,9 @@ def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width
                 rot, t, r, iterations, chi2, status, err = rot2, t2, r2, its2, chi2_2, status2, err2
                 cov[:, :] = cov2
                 res_out[:, :] = res2
+    # A corner pose that is poorly determined, or refused: perhaps a neighbouring basin holds the right minimum.
+    # Not for a poorly determined one the dense refinement takes over: fitting every point, it finds its basin
+    # from the corner pose as well as from the searched one (docs/estimator.md, Unclean profiles)
     if opt[O_SEARCH] > 0 and refined and (status != OK or not dense and not _position_sigma(cov[3:, 3:]) <=
                                           opt[O_SEARCHSIG]):
         best_rot, best_t, best_r, best_cov = np.empty((3, 3)), np.empty(3), np.empty(2 * n), np.empty((6, 6))

@@ -24,8 +24,8 @@ def estimate(points, q, u, w, normals, offsets, ridge_q, ridge_u, width, length,
     otherwise estimate_partial's, with its which (kind, a, b, verdict) and where.
 
     partial_opt: estimate_partial's relaxed and unsearched vectors as rows; tables: its hidden_table rows
-    (MAX_HIDDEN_IN_A_GAP of them) then its view_table rows, none to try no partial view. (Few arguments: each
-    costs the call about 0.1 us to convert, on every profile.)"""
+    (MAX_HIDDEN_IN_A_GAP of them) then its view_table rows, none to try no partial view. (Packed: every argument
+    is converted on every profile's call.)"""
     # writable copies of the caller's read-only arrays: numba compiles a function once per argument type, and
     # read-only is a type of its own; the hypotheses pass arrays made in the call, so with these the whole
     # pipeline below is compiled once, not once for each
