@@ -176,10 +176,25 @@ def _dense_stage(points, q, u, w, faces, width, length, opt, corners, rot, t, co
 
 
 @kernel(**JIT)
+def _starting_poses(q, u, w, corners, start_rots, start_ts, info):
+    """The starting poses of the refinement into start_rots (3, 3, 3) and start_ts (3, 3): the closed form, or a
+    four-ridge gauge's candidates (its system leaves a free direction). Returns (status, how many): NO_START or
+    the closed form's refusal (info holds its numbers) with none."""
+    if corners.shape[0] == 4:
+        count = four_ridge_starts(q, u, w, corners, start_rots, start_ts)
+        return (OK if count > 0 else NO_START), count
+    status, rot, t = _closed_form(q, u, w, corners, info)
+    if status != OK:
+        return status, 0
+    start_rots[0] = rot
+    start_ts[0] = t
+    return OK, 1
+
+
+@kernel(**JIT)
 def _from_the_real_corners(q, u, w, corners, corner_cov, weighted, max_iterations, virtual):
-    """The lowest minimum of all the corners refined from the starts the real ones give on their own (every
-    corner but `virtual`: the closed form, or four ridges' candidates). Returns (found, rot, t, residuals,
-    covariance, chi2, iterations)."""
+    """The lowest minimum of all the corners refined from the starting poses of the real ones alone (every corner
+    but `virtual`; none from three). Returns (found, rot, t, residuals, covariance, chi2, iterations)."""
     n = corners.shape[0]
     m = n - 1
     sub_q, sub_u, sub_w, sub_corners = np.empty((m, 3)), np.empty(m), np.empty(m), np.empty((m, 2))
@@ -190,12 +205,8 @@ def _from_the_real_corners(q, u, w, corners, corner_cov, weighted, max_iteration
             k += 1
     start_rots, start_ts = np.empty((3, 3, 3)), np.empty((3, 3))
     count = 0
-    if m == 4:
-        count = four_ridge_starts(sub_q, sub_u, sub_w, sub_corners, start_rots, start_ts)
-    elif m > 4:
-        status, rot, t = _closed_form(sub_q, sub_u, sub_w, sub_corners, np.zeros(4))
-        if status == OK:
-            start_rots[0], start_ts[0], count = rot, t, 1
+    if m >= 4:
+        _, count = _starting_poses(sub_q, sub_u, sub_w, sub_corners, start_rots, start_ts, np.zeros(4))
     best_rot, best_t, best_r, best_cov = np.empty((3, 3)), np.empty(3), np.empty(2 * n), np.empty((6, 6))
     best_cost, best_chi2, best_its = np.inf, np.inf, 0
     cov = np.empty((6, 6))
@@ -234,20 +245,11 @@ def estimate_detected(points, q, u, w, normals, offsets, ridge_q, ridge_u, width
             for k in range(2 * n + 2):
                 acc += jac[a, k] * line_var[k] * jac[b, k]
             corner_cov[a, b] = acc
-    # the starting poses: the closed form, or a four-ridge gauge's candidates (its system leaves a free direction)
     start_rots = np.empty((3, 3, 3))
     start_ts = np.empty((3, 3))
-    if n == 4:
-        count = four_ridge_starts(q, u, w, corners, start_rots, start_ts)
-        if count == 0:
-            return NO_START, 0, fit_rms, np.nan, np.nan, np.nan, 0
-    else:
-        status, rot, t = _closed_form(q, u, w, corners, info)
-        if status != OK:
-            return status, 0, fit_rms, np.nan, np.nan, np.nan, 0
-        start_rots[0] = rot
-        start_ts[0] = t
-        count = 1
+    status, count = _starting_poses(q, u, w, corners, start_rots, start_ts, info)
+    if status != OK:
+        return status, 0, fit_rms, np.nan, np.nan, np.nan, 0
     cf_err = _start_outputs(q, u, w, corners, start_rots[0], start_ts[0], cf_rot, cf_t, cf_res)
     refined = opt[O_REFINE] > 0
     weighted = opt[O_WEIGHTED] > 0
