@@ -72,31 +72,35 @@ def partial_view_estimate(outcome: tuple, outputs: tuple, which: tuple, where: n
         found.hidden_face, found.faces_hidden, found.faces_in_view = (one_hidden, 0 if one_hidden is None else 1,
                                                                       (a, b))  # found is this call's own
         return found
-    return _hidden_in_gap(outcome, outputs, gauge, _unbounded(partial), describe, timings, a, b, verdict,
-                          where.tolist())
+    return _hidden_in_gap(outcome, outputs, gauge, _unbounded(partial), describe, timings, a, b, verdict, where)
 
 
 def _hidden_in_gap(outcome: tuple, outputs: tuple, gauge: Gauge, relaxed: EstimatorOptions, describe: Describe,
-                   timings: dict, count: int, face: int, verdict: int, where: list[float]) -> PoseEstimate:
+                   timings: dict, count: int, face: int, verdict: int, where: np.ndarray) -> PoseEstimate:
     """The estimate of the gauge without `count` faces from `face`, which the gap (where[0], where[1]) hid, or
     why not (the verdict, with its numbers in where[2:])."""
-    before, after = where[:2]
     faces = f"face {face}" if count == 1 else f"faces {face}..{face + count - 1}"
-    gap = f"{faces} hidden by the gap at x {before * 1e3:.1f}..{after * 1e3:.1f} mm"
     if verdict == codes.VERDICT_PARALLEL:
-        return PoseEstimate(False, f"corner detection: {gap}, but faces {face - 1} and {face + count} are parallel: "
-                                   f"without a corner between them the faces seen do not determine the pose",
-                            timings=timings)
+        return PoseEstimate(False, f"corner detection: {_gap(faces, where)}, but faces {face - 1} and {face + count} "
+                                   f"are parallel: without a corner between them the faces seen do not determine "
+                                   f"the pose", timings=timings)
     found = describe(outcome, outputs, _gauge_without(gauge, face, count), relaxed, timings)
     if not found.ok:
-        return replace(found, reason=f"{found.reason} (with {gap})")
+        return replace(found, reason=f"{found.reason} (with {_gap(faces, where)})")
     if verdict == codes.VERDICT_OUTSIDE:
-        return rejected(found, f"{reason_outside(int(where[2]), where[3], where[4], gauge)} (with {gap})")
+        return rejected(found, f"{reason_outside(int(where[2]), where[3], where[4], gauge)} (with "
+                               f"{_gap(faces, where)})")
     if verdict == codes.VERDICT_WHERE_POINTS:
         return rejected(found, f"the pose puts {faces} at x {where[2] * 1e3:.1f}..{where[3] * 1e3:.1f} mm, where "
-                               f"the profile has points (with {gap})")
+                               f"the profile has points (with {_gap(faces, where)})")
     found.hidden_face, found.faces_hidden = face, count  # found is this call's own
     return found
+
+
+def _gap(faces: str, where: np.ndarray) -> str:
+    """The words for the gap that hid the faces: only a refusal prints them, and an accepted pose is the common
+    case on a gap profile."""
+    return f"{faces} hidden by the gap at x {where[0] * 1e3:.1f}..{where[1] * 1e3:.1f} mm"
 
 
 def partial_tables(gauge: Gauge) -> np.ndarray:

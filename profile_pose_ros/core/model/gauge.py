@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import yaml
@@ -139,27 +139,29 @@ class Gauge:
         """The gauge as a profile that misses `count` adjacent faces from `face` sees it: the faces either side
         meet at a virtual ridge, where their planes cross. Same frame and footprint, so a pose of this gauge is
         a pose of the real one."""
-        index = np.arange(len(self.normals))
         label = f"without face {face}" if count == 1 else f"without faces {face}..{face + count - 1}"
-        return self._with_faces(label, (index < face) | (index >= face + count))
+        return self._with_faces(label, lambda index: (index < face) | (index >= face + count))
 
     def faces_in_view(self, first: int, last: int) -> "Gauge":
         """The gauge as a profile that shows only faces first..last sees it (the others beyond the ends of its
         view): those faces and the ridges between them. Same frame and footprint."""
-        return self._with_faces(f"faces {first}..{last}", slice(first, last + 1))
+        return self._with_faces(f"faces {first}..{last}", lambda index: (index >= first) & (index <= last))
 
-    def _with_faces(self, label: str, keep) -> "Gauge":
-        """The gauge of the faces `keep` selects, made once per gauge and label (a profile's hypotheses ask for
-        the same ones again and again). So is a refusal: faces whose planes never meet raise the same GaugeError
-        each time without being validated again."""
+    def _with_faces(self, label: str, keep: Callable[[np.ndarray], np.ndarray]) -> "Gauge":
+        """The gauge of the faces keep(face indices) selects, made once per gauge and label: a gap profile's
+        description asks for its reduced gauge every time, so a made one costs a lookup and no array work. So
+        is a refusal: faces whose planes never meet raise the same GaugeError each time without being validated
+        again."""
         cache = self.__dict__.setdefault("_with_faces_cache", {})
-        if label not in cache:
+        made = cache.get(label)
+        if made is None:
+            chosen = keep(np.arange(len(self.normals)))
             try:
-                cache[label] = Gauge(f"{self.name} {label}", self.width, self.length, np.array(self.normals[keep]),
-                                     np.array(self.offsets[keep]), self.base_z, source=self.source)
+                made = Gauge(f"{self.name} {label}", self.width, self.length, np.array(self.normals[chosen]),
+                             np.array(self.offsets[chosen]), self.base_z, source=self.source)
             except GaugeError as exc:
-                cache[label] = str(exc)
-        made = cache[label]
+                made = str(exc)
+            cache[label] = made
         if isinstance(made, str):
             raise GaugeError(made)  # a new one each time: a kept exception would grow its traceback per raise
         return made
