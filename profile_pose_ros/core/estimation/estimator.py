@@ -17,8 +17,8 @@ from ..compiled.loader import kernels
 from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
 from .hidden_face import partial_view_estimate, partial_view_inputs
-from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, position_sigma, reason_ambiguous,
-                     reason_inconsistent, reason_outside, reason_poorly_determined, reason_reprojection, rejected)
+from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, reason_ambiguous, reason_inconsistent,
+                     reason_outside, reason_poorly_determined, reason_reprojection)
 from .residuals import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
 from .stages import detect_corners, detection_reason, refine_pose
 
@@ -35,18 +35,6 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
     if overrides:
         options = options.with_changes(**overrides)
     return _estimate_in_one_call(points, gauge, options)
-
-
-def _checked_precision(estimate: PoseEstimate, options: EstimatorOptions) -> PoseEstimate:
-    """The estimate, or a rejection when its position is too poorly determined to trust its covariance."""
-    if not estimate.ok:
-        return estimate
-    sigma = estimate.position_sigma
-    if sigma is None:
-        sigma = position_sigma(estimate.covariance[:3, :3])  # NaN (kept) when the covariance is not finite
-    if sigma > options.max_position_sigma:
-        return rejected(estimate, reason_poorly_determined(sigma, options))
-    return estimate
 
 
 def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptions, error: float) -> str:
@@ -109,10 +97,13 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     return partial_view_estimate(outcome, outputs, which, where, gauge, options, _described, timings)
 
 
-def _from_outcome(outcome: tuple, outputs: tuple, gauge: Gauge, options: EstimatorOptions,
-                  timings: dict) -> PoseEstimate:
+def _described(outcome: tuple, outputs: tuple, gauge: Gauge, options: EstimatorOptions,
+               timings: dict) -> PoseEstimate:
     """The PoseEstimate of a compiled estimate's outcome (its returned tuple) and outputs (the arrays it filled,
-    in _estimate_in_one_call's order) for `gauge` (the one its corners saw)."""
+    in _estimate_in_one_call's order, this call's own) for `gauge` (the one its corners saw): the whole gauge's,
+    or a partial view's (hidden_face.py). A pose whose position is too poorly determined to trust its covariance
+    is refused here, its numbers blanked in place and the corner results kept for diagnosis (as `rejected`
+    makes it, without copying the estimate: most profiles of a noisy or near-degenerate view end here)."""
     status, iterations, fit_rms, error, cf_error, sigma, search_starts = outcome
     corners, rot, t, cov, cf_rot, cf_t, cf_res, _, info = outputs
     if status in (codes.TOO_FEW_POINTS, codes.X_NOT_INCREASING, codes.STEEP_SEGMENT, codes.WRONG_CORNER_COUNT,
@@ -121,17 +112,15 @@ def _from_outcome(outcome: tuple, outputs: tuple, gauge: Gauge, options: Estimat
     if status in (codes.CF_RANK, codes.CF_DEGENERATE, codes.NO_START):
         return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
     ok = status == codes.OK
-    return PoseEstimate(ok=ok, reason="" if ok else _reason(status, info, gauge, options, error), R=rot, t=t,
-                        corners=corners, reprojection_error=error, covariance=cov,
+    reason = "" if ok else _reason(status, info, gauge, options, error)
+    if ok and sigma > options.max_position_sigma:
+        ok, reason = False, reason_poorly_determined(sigma, options)
+        for published in (rot, t, cov):
+            published.fill(np.nan)
+    return PoseEstimate(ok=ok, reason=reason, R=rot, t=t, corners=corners, reprojection_error=error, covariance=cov,
                         closed_form=PoseSolution(cf_rot, cf_t, cf_res), refined=options.refine,
                         iterations=iterations, fit_rms=fit_rms, timings=timings,
                         position_sigma=sigma if ok else None, search_starts=int(search_starts))
-
-
-def _described(outcome: tuple, outputs: tuple, gauge: Gauge, options: EstimatorOptions,
-               timings: dict) -> PoseEstimate:
-    """The checked estimate of a compiled outcome: the whole gauge's, or a partial view's (hidden_face.py)."""
-    return _checked_precision(_from_outcome(outcome, outputs, gauge, options, timings), options)
 
 
 def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
