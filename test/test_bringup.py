@@ -174,3 +174,13 @@ def test_a_namespace_and_a_frame_prefix_keep_cells_apart(ros) -> None:
     for node, names in FRAME_PARAMETERS.items():  # every frame parameter exists, with the standard default
         params = {p.name: p.default for p in modules[node].PARAMETERS}
         assert all(params[name] == default for name, default in names.items()), node
+
+
+def test_the_ports_a_cell_is_given_are_all_different() -> None:
+    # a port closed before the next is asked for can be handed out again: one bringup's profiler and robot
+    # controller were once given the same port, and its sim_cell could not start (asked one at a time, 300
+    # ports here repeat a few)
+    from profile_pose_ros.tools.graph import free_ports
+
+    ports = free_ports(300)
+    assert len(set(ports)) == len(ports)

@@ -7,7 +7,7 @@ from geometry_msgs.msg import PoseStamped
 
 from profile_pose_ros.bags import read_messages
 from profile_pose_ros.tools import processes
-from profile_pose_ros.tools.graph import Graph, free_port
+from profile_pose_ros.tools.graph import Graph, free_ports
 from profile_pose_ros.tools.replay import POSE_TYPE, canonical, estimator_values, replay
 from profile_pose_ros.tools.param_files import parse_overrides
 
@@ -32,7 +32,7 @@ def test_recorded_profiles_replay_to_the_recorded_poses_bit_for_bit(tmp_path) ->
     recorded = tmp_path / "recorded"
     graph = Graph(tmp_path / "live", client_name="replay_test")
     try:
-        profiler, mcu = free_port(), free_port()
+        profiler, mcu = free_ports(2)
         # no robot controller: it would trigger the profiler every period from the start, before the recorder
         # has subscribed; the clock triggers only once trigger_rate is set below
         graph.start("sim_cell", {"profiler_port": profiler, "mcu_port": mcu, "robot_enabled": False,

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ..nodes.run import StopRequest
 from ..resources import config_path
-from .graph import Graph, free_port
+from .graph import Graph, free_ports
 from .report import run_dir
 
 DISCOVERY_RANGES = ("LOCALHOST", "SUBNET", "OFF", "SYSTEM_DEFAULT")
@@ -66,7 +66,7 @@ class Bringup:
             g.start("bag_recorder", {"output": str(self.out / "bag")})
         driver, bridge = {}, {}
         if not self.hardware:  # ports of its own: several simulated cells side by side
-            profiler, mcu, robot = free_port(), free_port(), free_port()
+            profiler, mcu, robot = free_ports(3)
             g.start("sim_cell", {"profiler_port": profiler, "mcu_port": mcu, "robot_port": robot,
                                  **self.frames.get("sim_cell", {})})
             driver = {"port": profiler, "serial_url": f"socket://127.0.0.1:{mcu}"}

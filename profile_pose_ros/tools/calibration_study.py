@@ -19,7 +19,7 @@ import numpy as np
 from ..core.commissioning.hand_eye import X_ROTATION, X_TRANSLATION, Y_ROTATION, Y_TRANSLATION, Bounds
 from ..core.model.transform import Transform, difference
 from . import processes
-from .graph import Graph, free_port
+from .graph import Graph, free_ports
 from .report import run_dir, table, write_json
 
 # The issue's range: gauge turned up to 30 deg about base z and 5 deg about x and y, offset up to 50 mm; the
@@ -42,7 +42,7 @@ def start_cell(graph: Graph, gauge_in_base, profiler_in_flange, gauge_file: str 
     """sim_cell with the hidden truth, the driver and the estimator; returns the bridge's parameters (the
     bridge and the compensator are the caller's)."""
     period = 0.012 if rate_hz < 200 else 0.004
-    ports = {"profiler": free_port(), "mcu": free_port(), "robot": free_port()}
+    ports = dict(zip(("profiler", "mcu", "robot"), free_ports(3)))
     gauge = {"gauge_file": gauge_file} if gauge_file else {}
     graph.start("sim_cell", {"profiler_port": ports["profiler"], "mcu_port": ports["mcu"], "robot_port": ports["robot"],
                              "control_period": period, "seed": seed,

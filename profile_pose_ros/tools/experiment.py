@@ -28,7 +28,7 @@ from ..core.estimation.result import REFINE_MODELS
 from ..core.model.transform import Transform
 from .config_files import add_control_law_option
 from .calibration_study import calibrated, hidden_placement
-from .graph import Graph, free_port
+from .graph import Graph, free_ports
 from .report import run_dir, table, write_json
 
 AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0), "xyz": (1.0, 1.0, 1.0)}
@@ -211,7 +211,7 @@ class Experiment:
         self.period = period
         if bag is not None:  # first, so that it has subscribed before the others publish
             graph.start("bag_recorder", {"output": str(bag), "compression": "zstd", "diagnostics_period": 0.5})
-        profiler_port, mcu_port, robot_port = free_port(), free_port(), free_port()
+        profiler_port, mcu_port, robot_port = free_ports(3)
         self.robot_port = robot_port
         # The per-period step limits are the speed limits over one period (the bridge's from the compensator's,
         # the controller's from its own): the defaults (0.2 mm) are that at 4 ms, and at 12 ms would hold a

@@ -2,6 +2,7 @@
 to watch them: what the checks, the experiment and the soak run against."""
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -37,11 +38,20 @@ def cpu_percent(before: dict[str, float], after: dict[str, float], wall_s: float
     return {name: 100.0 * (used - before[name]) / wall_s for name, used in after.items() if name in before}
 
 
+def free_ports(count: int) -> list[int]:
+    """`count` different TCP ports free on 127.0.0.1 right now (the OS picks them). All are held until every one
+    is picked: a port closed before the next is asked for can be handed out again, and a cell whose profiler
+    and robot controller were given one port fails to start (seen: the controller's "cannot listen")."""
+    with contextlib.ExitStack() as held:
+        sockets = [held.enter_context(socket.socket()) for _ in range(count)]
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+
+
 def free_port() -> int:
     """A TCP port free on 127.0.0.1 right now (the OS picks it)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_ports(1)[0]
 
 
 def ros_params(values: dict) -> list[str]:

@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from ..nodes.messages import cdr_stamp_ns, pose_difference, stamp_ns
-from .graph import Graph, cpu_percent, free_port
+from .graph import Graph, cpu_percent, free_ports
 from .report import nearest_stamp, run_dir, summary, table, write_json
 
 SINES = {"sine_amplitude": [2e-3, 1e-3, 1e-3, 2e-3, 1e-3, 2e-3], "sine_frequency": [0.5, 0.7, 0.3, 0.4, 0.6, 0.2]}
@@ -29,7 +29,7 @@ class CheckRun:
 
         self.graph, self.rate_hz = graph, rate_hz
         self.triggers = int(round(rate_hz * seconds))
-        profiler_port, mcu_port = free_port(), free_port()
+        profiler_port, mcu_port = free_ports(2)
         graph.start("sim_cell", {"profiler_port": profiler_port, "mcu_port": mcu_port, "trigger_rate": 0.0,
                                  "robot_enabled": False, "mcu_baudrate": baudrate,
                                  "noise_std": noise_std, "drop_fraction": drop_fraction, "seed": seed,

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from ..nodes.messages import cdr_stamp_ns, stamp_ns
-from .graph import Graph, free_port
+from .graph import Graph, free_ports
 from .report import run_dir, table, write_json
 
 FAULTS = {  # --fault -> sim_cell's parameter that drops the link every N triggers
@@ -57,7 +57,7 @@ def one_start(log_dir, seconds: float, estimator: bool, cell_params: dict, drive
     profiles: list[int] = []
     poses: list[int] = []
     try:
-        profiler_port, mcu_port, robot_port = free_port(), free_port(), free_port()
+        profiler_port, mcu_port, robot_port = free_ports(3)
         graph.start("sim_cell", {"profiler_port": profiler_port, "mcu_port": mcu_port, "robot_port": robot_port,
                                  "diagnostics_period": 0.5, **cell_params})
         graph.start("profiler_driver", {"port": profiler_port, "serial_url": f"socket://127.0.0.1:{mcu_port}",
