@@ -18,9 +18,10 @@ Every cell also says how many wrong poses its accepted poses' own covariances pr
 of being wrong, were its error the Gaussian its covariance describes, summed): an estimator whose covariance
 is honest publishes about that many, and no gate above the poses' σ removes them.
 
---repeats K times each profile K times: the first call's time is the one a node sees, scheduler and cache
-jitter included (on a busy 2-core machine it doubles a cell's p99); the fastest of the K is the estimator's own
-cost, reported beside it.
+--repeats K times each profile K times: the first call's time is the one a node sees, a new profile's cold
+caches and branch predictors and the machine's jitter included (on a busy 2-core machine it doubles a cell's
+p99); the fastest of the K, reported beside it, is the estimator's cost with all of that warm from the same
+profile: a lower bound, which tells the estimator's own slow paths from the machine.
 """
 from __future__ import annotations
 
@@ -135,7 +136,7 @@ def family_trial(task: tuple) -> list[dict]:
             start = time.perf_counter()
             estimate = estimate_pose(points, gauge, options)
             elapsed = fastest = time.perf_counter() - start
-            for _ in range(repeats - 1):  # the same answer again: only its time differs, by the machine's jitter
+            for _ in range(repeats - 1):  # the same answer again: only its time differs (warm caches, jitter)
                 start = time.perf_counter()
                 estimate_pose(points, gauge, options)
                 fastest = min(fastest, time.perf_counter() - start)
@@ -222,8 +223,8 @@ def main(argv=None) -> int:
                              "would cost an estimator at the bound")
     parser.add_argument("--repeats", type=int, default=1,
                         help="time each profile this many times: the first call's time stays the one reported "
-                             "(what a node sees), the fastest is reported beside it (the estimator's own, without "
-                             "the machine's jitter)")
+                             "(what a node sees), the fastest is reported beside it (the estimator's own cost with "
+                             "warm caches: a lower bound)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--out", default="runs")
