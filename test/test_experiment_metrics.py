@@ -161,6 +161,9 @@ def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
 WINDOWS_SLACK_MS = 0.25
 
 
+# a moving increment is sent only while the bridge stays armed: a stall of half a second beside another test's
+# load disarmed it once (the composed process, corrections 0.6 s late) and left the last stage without a sample
+@pytest.mark.alone
 @pytest.mark.parametrize("composed", [False, True], ids=["processes", "cell_container"])
 def test_the_latency_budget_reads_every_stage_from_the_nodes(tmp_path, composed: bool) -> None:
     """profile_pose latency's default observer: each node's own timing, from its diagnostics. Composed,
