@@ -129,12 +129,13 @@ def test_a_gap_over_a_whole_face_leaves_its_neighbours_to_place_it(rng):
 def test_a_hidden_face_hypothesis_is_the_estimate_of_the_gauge_without_that_face(rng):
     """The compiled partial view (partial_kernel.estimate_partial, inside profile_kernel.estimate) detects the
     corners either side of the gap and estimates the gauge without the face from them: to the bit the estimate
-    the estimator gives that gauge directly, with the gap marked in its options. With the corner model: the dense fit of a partial view fits the
-    real gauge's faces, which the direct estimate of the reduced gauge does not know."""
+    the estimator gives that gauge directly, with the gap marked in its options. With the corner model: the
+    dense fit of a partial view fits the real gauge's faces, which the direct estimate of the reduced gauge does
+    not know."""
     from profile_pose_ros.core.estimation.hidden_face import _gauge_without, _unbounded
     from profile_pose_ros.core.estimation.result import EstimatorOptions
 
-    options = EstimatorOptions(hidden_faces=True)
+    options = EstimatorOptions(refine_model="corners", hidden_faces=True)
     compared = 0
     for gauge, rotation, t, face, points in narrow_faces_hidden(rng, 8):
         estimate = estimate_pose(points, gauge, options)

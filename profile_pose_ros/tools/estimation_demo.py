@@ -42,7 +42,7 @@ def run_core(gauge: Gauge, poses, noise_std: float, rng: np.random.Generator) ->
     rows, failures = [], []
     for rotation, translation in poses:
         points = render_profile(gauge, rotation, translation, noise_std=noise_std, rng=rng)
-        estimate = estimate_pose(points, gauge)
+        estimate = estimate_pose(points, gauge, refine_model="corners")  # the baseline's model
         _, _, baseline_timings = estimate_baseline(points, gauge)
         if not estimate.ok:
             failures.append(estimate.reason)

@@ -213,7 +213,8 @@ def main(argv=None) -> int:
                                  "random n=7", "random n=10"])
     parser.add_argument("--gauges", type=int, default=10, help="random gauges per random family")
     parser.add_argument("--poses", type=int, default=20, help="poses per gauge (shipped gauges: x gauges)")
-    parser.add_argument("--refine-model", default="corners", choices=REFINE_MODELS)
+    parser.add_argument("--refine-model", default="auto", choices=REFINE_MODELS,
+                        help="the estimator's default and the node's: auto (corners: the paper's model alone)")
     parser.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
                         help="estimator options (pose_estimator's parameter names), e.g. spike_threshold=0 "
                              "max_residual_ratio=inf for the estimator without its spike filter and consistency test")

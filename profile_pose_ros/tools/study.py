@@ -38,8 +38,8 @@ SPIKES = 0.01  # share of profile points replaced by spikes in the outlier study
 SPIKE_RANGE = (2e-4, 2e-3)  # m, spike magnitude (either sign)
 # plain fits, eq. 15, one start, every refined pose kept
 PAPER_PIPELINE = {"robust_line_fit": False, "spike_threshold": 0.0, "refine_weighting": "uniform",
-                  "basin_search": False, "max_position_sigma": np.inf, "max_residual_ratio": np.inf,
-                  "hidden_faces": False}
+                  "refine_model": "corners", "basin_search": False, "max_position_sigma": np.inf,
+                  "max_residual_ratio": np.inf, "hidden_faces": False}
 
 
 def error_row(gauge, estimate, rotation, t, n: int) -> list[float]:
@@ -84,19 +84,21 @@ def gauge_trial(task: tuple) -> dict:
         rotation, t = sample_pose(gauge, rng, trace=trace_depth_fast)
         for noise in noises:
             points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, trace=trace_depth_fast)
-            paper = estimate_pose(points, gauge, max_reprojection_error=1.0, basin_search=False,
-                                  max_position_sigma=np.inf, max_residual_ratio=np.inf)
+            paper = estimate_pose(points, gauge, max_reprojection_error=1.0, refine_model="corners",
+                                  basin_search=False, max_position_sigma=np.inf, max_residual_ratio=np.inf)
             row = error_row(gauge, paper, rotation, t, n)
             rows[noise].append(row if noise > 0 else row[:6] + [np.nan])
             if noise != TABLE_NOISE:
                 continue
-            ours = estimate_pose(points, gauge, max_reprojection_error=1.0)
+            # the package's corner model beside the paper's (the dense model has its own columns, below)
+            ours = estimate_pose(points, gauge, max_reprojection_error=1.0, refine_model="corners")
             table.append(error_row(gauge, ours, rotation, t, n))
             spiky_ours = spiky_paper = np.nan
             if n == 5:
                 spiky = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, spike_fraction=SPIKES,
                                        spike_range=SPIKE_RANGE, trace=trace_depth_fast)
-                spiky_ours = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0), rotation, t,
+                spiky_ours = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0,
+                                                            refine_model="corners"), rotation, t,
                                        n)[4]
                 spiky_paper = error_row(gauge, estimate_pose(spiky, gauge, max_reprojection_error=1.0,
                                                              **PAPER_PIPELINE), rotation, t, n)[4]

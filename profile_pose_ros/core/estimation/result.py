@@ -28,8 +28,10 @@ class EstimatorOptions:
     refine_weighting: str = "corner_covariance"  # or "uniform": the paper's plain eq. (15)
     # "corners" (the paper's), "dense": then also fit every point's depth (core/estimation/dense.py), or "auto":
     # dense only where the corner pose's position std exceeds dense_above_sigma, the views whose corners
-    # determine them too poorly (the corner model's refusals and wrong poses are all there: docs/estimator.md)
-    refine_model: str = "corners"
+    # determine them too poorly (the corner model's refusals and wrong poses are all there, and its slow tail:
+    # the basin search and the unscented covariance; docs/estimator.md). The default, as the node's: on a view
+    # the corners determine well it is the corner model, to the bit
+    refine_model: str = "auto"
     dense_above_sigma: float = 2e-4  # m
     noise_std: float = 0.0  # m; 0 = estimate the depth noise from each face fit
     max_reprojection_error: float = 1e-4  # m; reject poses whose corners miss their ridges by more
