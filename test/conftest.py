@@ -77,6 +77,22 @@ def pytest_runtest_protocol(item, nextitem):
         return (yield)
 
 
+_rerun_reasons: list[tuple[str, str]] = []
+
+
+def pytest_runtest_logreport(report) -> None:
+    """A test's failed attempt that pytest-rerunfailures ran again (outcome "rerun"): kept for the summary. The
+    plugin's summary names the test only, and a flaky first attempt on a fresh runner is what to look at."""
+    if report.outcome == "rerun" and report.longrepr is not None:
+        _rerun_reasons.append((report.nodeid, report.longreprtext))
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    for nodeid, text in _rerun_reasons:
+        terminalreporter.write_sep("-", f"why {nodeid} was run again")
+        terminalreporter.write_line("\n".join(text.splitlines()[-40:]))
+
+
 # Nodes under test run in this process: tuned as their own processes are (run_node's switch_interval)
 shorten_switch_interval(LOOP_SWITCH_INTERVAL_S)
 
