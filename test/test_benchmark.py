@@ -105,6 +105,17 @@ def test_quick_robustness_runs_every_condition_and_the_shipped_gauges_publish_no
     assert "fastest of 2" in stdout
 
 
+def test_a_run_of_a_few_families_sees_the_profiles_the_full_run_does():
+    """A family's gauges and poses follow from the seed and the family, not from its place in --families: a
+    closer look at one cell of a full run reproduces that cell."""
+    from profile_pose_ros.tools.robustness import FAMILIES, _family_index
+
+    for family in FAMILIES:
+        assert _family_index(family, [family]) == _family_index(family, list(FAMILIES)) == FAMILIES.index(family)
+    assert _family_index("random n=6", ["random n=5", "random n=6"]) == len(FAMILIES)
+    assert _family_index("my_gauge.yaml", ["random n=6", "my_gauge.yaml"]) == len(FAMILIES) + 1
+
+
 def test_the_chance_of_a_wrong_pose_is_the_gaussian_tail_of_its_covariance():
     from scipy.stats import chi2, norm
 

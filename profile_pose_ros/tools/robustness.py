@@ -55,6 +55,8 @@ OVERCONFIDENT_POSITION = 1e-4  # m
 GAP_FRACTION = 0.10
 BASE_NOISE = 5e-6
 
+# the gauges a run covers by default: the shipped ones, and random ones of 4-10 ridges
+FAMILIES = ("gauge_paper_n5.yaml", "gauge_designed_n6.yaml", "random n=4", "random n=5", "random n=7", "random n=10")
 # condition -> (noise, spike fraction, gap placement)
 CONDITIONS = {
     "clean": (BASE_NOISE, 0.0, None),
@@ -68,6 +70,14 @@ CONDITIONS = {
     "noise 25 um": (25e-6, 0.0, None),
     "noise 45 um": (45e-6, 0.0, None),
 }
+
+
+def _family_index(family: str, families: list[str]) -> int:
+    """Which seed offset a family's profiles draw from: its place in the default list, so that a run of a few
+    families (--families "random n=5") sees the very profiles the full run at that seed does; others after."""
+    if family in FAMILIES:
+        return FAMILIES.index(family)
+    return len(FAMILIES) + [f for f in families if f not in FAMILIES].index(family)
 
 
 def family_gauges(family: str, count: int, seed: int) -> list[Gauge]:
@@ -208,9 +218,7 @@ def _option(item: str) -> tuple[str, object]:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="2 gauges per random family, 6 poses each")
-    parser.add_argument("--families", nargs="+",
-                        default=["gauge_paper_n5.yaml", "gauge_designed_n6.yaml", "random n=4", "random n=5",
-                                 "random n=7", "random n=10"])
+    parser.add_argument("--families", nargs="+", default=list(FAMILIES))
     parser.add_argument("--gauges", type=int, default=10, help="random gauges per random family")
     parser.add_argument("--poses", type=int, default=20, help="poses per gauge (shipped gauges: x gauges)")
     parser.add_argument("--refine-model", default="auto", choices=REFINE_MODELS,
@@ -235,7 +243,8 @@ def main(argv=None) -> int:
     gauges, poses = (2, 6) if args.quick else (args.gauges, args.poses)
     options = {"refine_model": args.refine_model, **dict(_option(item) for item in args.set)}
     tasks = []
-    for f, family in enumerate(args.families):
+    for family in args.families:
+        f = _family_index(family, args.families)
         if family.startswith("random n="):
             tasks += [(family, k, args.seed + 101 * f, poses, options, args.bound, args.repeats)
                       for k in range(gauges)]
