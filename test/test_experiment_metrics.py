@@ -158,6 +158,42 @@ def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
     assert by_mode["closed"]["truth"]["y"][-1] == pytest.approx(1e-3, abs=5e-5)  # it got there, really
 
 
+@pytest.mark.alone  # judges the live loop
+def test_a_step_the_bridge_disarmed_during_is_done_again_with_the_bridge_armed_again(tmp_path, capsys) -> None:
+    """A stalled loop makes the bridge disarm (no fresh correction for 0.5 s: its safety stop, until ~/start).
+    The experiment sees it, leaves that step's record out, arms the bridge again as it armed it for the closed
+    loop, and does the step again: the step after a stall is measured, not the arm standing still. Here ~/stop
+    is called during the step's record, as the stall's disarm would."""
+    from std_srvs.srv import Trigger
+
+    from profile_pose_ros.resources import config_path
+    from profile_pose_ros.tools.experiment import AXES, Experiment
+    from profile_pose_ros.tools.graph import Graph
+
+    graph = Graph(tmp_path / "logs", client_name="disarm_test")
+    try:
+        exp = Experiment(graph, 83.333, 5e-6, 0, None, "corners",
+                         gauge_file=str(config_path("gauge_designed_n6.yaml")))
+        exp.close_loop()
+        stop = graph.node.create_client(Trigger, "/motoplus_bridge/stop")
+        calls = []
+
+        def stop_once() -> None:
+            if not calls:
+                calls.append(stop.call_async(Trigger.Request()))
+
+        timer = graph.node.create_timer(BEFORE_S + 0.5, stop_once)  # half a second into the first record
+        result = recorded_step(exp, True, np.array(AXES["z"]), 1e-3)
+        graph.node.destroy_timer(timer)
+        said = capsys.readouterr().out
+        assert calls and "the bridge disarmed during the step" in said, said
+        assert "armed again" in said and exp.bridge_armed()
+        assert result["attempts"] == 2 and not result["spoiled"], result["spoiled"]
+        assert result["truth"]["end_fraction"] >= REACHED  # the second attempt's arm followed the step
+    finally:
+        graph.close()
+
+
 WINDOWS_SLACK_MS = 0.25
 
 

@@ -59,7 +59,7 @@ MAX_HOLE_S = 0.05  # a longer gap between a record's samples can hide a peak of 
 # A step's command acknowledged later than this leaves its start that uncertain: the whole baseline window.
 # The program's step is a parameter service call (tens of ms), the reference a publish: both well within it.
 MAX_COMMAND_S = 0.2
-STEP_ATTEMPTS = 3  # a step whose record a stalled stream spoiled is done again, up to this many times in all
+STEP_ATTEMPTS = 3  # a step a stalled stream or a disarmed bridge spoiled is done again, up to this many times in all
 STARVED_SHARE = 0.1  # answers sent as zero beyond this share of all: the loop was short of CPU, say so
 
 
@@ -358,18 +358,33 @@ class Experiment:
         client = self._services[name]
         if not client.wait_for_service(timeout_sec=10.0):
             raise RuntimeError("motoplus_bridge's services are not available")
-        wanted = (lambda: self.value("motoplus_bridge", "state") == "armed") if arm else (lambda: True)
+        wanted = self.bridge_armed if arm else (lambda: True)
         for _ in range(attempts):
             future = client.call_async(Trigger.Request())
             if self.graph.spin_until(lambda: future.done() and wanted(), 5.0):
                 return
         raise RuntimeError(f"motoplus_bridge did not {name}: {self.value('motoplus_bridge', 'last_error')}")
 
+    def bridge_armed(self) -> bool:
+        """Whether the bridge's latest diagnostics say armed (they come every diagnostics_period, 0.5 s here)."""
+        return self.value("motoplus_bridge", "state") == "armed"
+
+    def why_disarmed(self) -> str:
+        """The bridge's words for why it is not armed: its last error, else its status (a ~/stop sets none)."""
+        error = self.value("motoplus_bridge", "last_error", "none")
+        return error if error != "none" else self.graph.diagnostics_message("motoplus_bridge")
+
     def step(self, closed: bool, direction: np.ndarray, size: float) -> dict:
         """One step and its return; the response along `direction`, from the estimate and the truth.
         "spoiled" says why a stream's record could not be measured (its metrics are then NaN)."""
         unit = direction / np.linalg.norm(direction)
         command = self.reference if closed else self.set_program
+        if closed and not self.bridge_armed():
+            # a stalled loop disarmed it (the bridge's safety stop, until ~/start): armed again as close_loop
+            # arms it, or every closed-loop step after would record an arm that no longer follows
+            print(f"  warning: the bridge was disarmed ({self.why_disarmed()}); armed again", flush=True)
+            self.bridge(arm=True)
+            self.wait(1.0)
         self.wait(BEFORE_S)
         start = time.time()
         command(unit * size)
@@ -378,6 +393,10 @@ class Experiment:
         command(np.zeros(3))
         self.wait(SETTLE_S)
         out: dict = {"spoiled": [], "command_ms": 1e3 * command_s}
+        disarmed = closed and not self.bridge_armed()  # neither record then shows the loop's response
+        if disarmed:
+            out["spoiled"].append(f"the bridge disarmed during the step ({self.why_disarmed()}): the arm stopped "
+                                  "following")
         if command_s > MAX_COMMAND_S:
             out["spoiled"].append(f"the step's command took {1e3 * command_s:.0f} ms to be acknowledged (when the "
                                   "step began is not known well enough)")
@@ -388,6 +407,7 @@ class Experiment:
             why = record_flaw(t, start, self.period)
             if why:
                 out["spoiled"].append(f"{name}: {why}")
+            if why or disarmed:
                 out[name] = {"t": [], "y": [], **dict.fromkeys(METRICS, float("nan"))}
                 continue
             before = (t > start - BEFORE_S) & (t < start)
@@ -791,8 +811,8 @@ def main(argv=None) -> int:
     print(result["loop"])
     redone = sum(r["attempts"] - 1 for r in result["runs"])
     if redone:
-        print(f"{redone} step(s) done again because a stream stalled or lost poses during them "
-              f"({sum(bool(r['spoiled']) for r in result['runs'])} of {len(result['runs'])} still spoiled after "
+        print(f"{redone} step(s) done again because a stream stalled or lost poses, or the bridge disarmed, during "
+              f"them ({sum(bool(r['spoiled']) for r in result['runs'])} of {len(result['runs'])} still spoiled after "
               f"{STEP_ATTEMPTS} attempts)")
     print("improvement >= the paper's on Mp, zeta and Mf, measured by the estimate (the paper's way) and by the "
           "arm's true motion (the simulator's truth, which a real cell does not have):")
