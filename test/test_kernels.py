@@ -78,6 +78,43 @@ def test_prune_removes_builds_unused_for_a_month_and_dead_scratch_only(tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "bbbb", "dddd.x2", "keep"]
 
 
+def test_a_process_that_needs_the_kernel_while_another_builds_it_waits_for_that_build(tmp_path, monkeypatch):
+    """Two processes that need the prebuilt kernel at once on a new machine make one build, not two on the same
+    cores: the second waits for the first's lock and then finds its module (a stand-in here: the holder writes the
+    file a build would), or gives up at its timeout."""
+    import importlib.machinery
+    import threading
+
+    monkeypatch.setenv("PROFILE_POSE_AOT_DIR", str(tmp_path))
+    target = aot.build_dir()
+    built = target / (aot.MODULE + importlib.machinery.EXTENSION_SUFFIXES[0])
+
+    def build_again(*_args) -> None:
+        raise AssertionError("built a second time")
+
+    monkeypatch.setattr(aot, "_build", build_again)
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import fcntl, pathlib, sys; lock = open(sys.argv[1], 'a'); fcntl.flock(lock, fcntl.LOCK_EX); "
+        "print('held', flush=True); sys.stdin.readline(); target = pathlib.Path(sys.argv[2]); "
+        "target.parent.mkdir(parents=True); target.write_bytes(b''); fcntl.flock(lock, fcntl.LOCK_UN)"),
+        str(tmp_path / "build.lock"), str(built)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert aot.ensure_built(timeout=0.3) is None  # held past its timeout: gives up, builds nothing
+        found = []
+        waiter = threading.Thread(target=lambda: found.append(aot.ensure_built(timeout=60.0)))
+        waiter.start()
+        waiter.join(timeout=1.0)
+        assert waiter.is_alive() and not found  # waiting for the holder, not building
+        holder.stdin.write("done\n")
+        holder.stdin.flush()
+        waiter.join(timeout=60.0)
+        assert found == [built]
+    finally:
+        holder.kill()
+        holder.wait()
+
+
 def test_tools_compile_the_estimator_before_starting_a_node_only_when_needed(tmp_path, monkeypatch, capsys):
     from profile_pose_ros.tools.graph import prepare_kernel
 

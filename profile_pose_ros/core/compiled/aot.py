@@ -11,6 +11,8 @@ Each new build removes the builds no process has loaded for a month (`prune`).
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import importlib.machinery
 import importlib.util
 import os
@@ -18,6 +20,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from .caches import cache_root, fingerprint, prune
@@ -60,22 +63,50 @@ def ensure_built(timeout: float = 900.0) -> Path | None:
         return path
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        scratch = Path(tempfile.mkdtemp(prefix=target.name + ".", dir=target.parent))
-        # the build compiles every kernel afresh, with a JIT cache of its own (see caches.jit_cache)
-        fresh = {**os.environ, "NUMBA_CACHE_DIR": str(scratch / JIT_CACHE)}
-        done = subprocess.run([sys.executable, "-m", "profile_pose_ros.core.compiled.aot", "build", str(scratch)],
-                              capture_output=True, text=True, timeout=timeout, env=fresh)
-        shutil.rmtree(scratch / JIT_CACHE, ignore_errors=True)
-        if done.returncode == 0 and _module_file(scratch) is not None:
-            try:
-                scratch.rename(target)  # atomic; a concurrent builder may have won, which is fine
-            except OSError:
-                pass
-        shutil.rmtree(scratch, ignore_errors=True)
-        prune(target.parent, keep=target)
-    except (OSError, subprocess.SubprocessError):
+        with _one_build_at_a_time(target.parent / "build.lock", timeout):
+            if _module_file(target) is None:  # not built by the process this one waited for
+                _build(target, timeout)
+    except (OSError, subprocess.SubprocessError, TimeoutError):
         return None
     return _module_file(target)
+
+
+@contextlib.contextmanager
+def _one_build_at_a_time(lock_file: Path, timeout: float):
+    """Held while a build runs: processes that need the kernel at once on a new machine (two nodes started
+    together, a script and the node it starts) wait for one build instead of each making its own on the
+    same cores. Polled, so that a wait ends at its timeout (TimeoutError)."""
+    deadline = time.monotonic() + timeout
+    with open(lock_file, "a") as handle:
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"another build held {lock_file} for {timeout:g} s") from None
+                time.sleep(0.2)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _build(target: Path, timeout: float) -> None:
+    """Build into a scratch directory beside target, then rename it to target (atomic)."""
+    scratch = Path(tempfile.mkdtemp(prefix=target.name + ".", dir=target.parent))
+    # the build compiles every kernel afresh, with a JIT cache of its own (see caches.jit_cache)
+    fresh = {**os.environ, "NUMBA_CACHE_DIR": str(scratch / JIT_CACHE)}
+    done = subprocess.run([sys.executable, "-m", "profile_pose_ros.core.compiled.aot", "build", str(scratch)],
+                          capture_output=True, text=True, timeout=timeout, env=fresh)
+    shutil.rmtree(scratch / JIT_CACHE, ignore_errors=True)
+    if done.returncode == 0 and _module_file(scratch) is not None:
+        try:
+            scratch.rename(target)  # atomic
+        except OSError:
+            pass
+    shutil.rmtree(scratch, ignore_errors=True)
+    prune(target.parent, keep=target)
 
 
 def is_current() -> bool:
