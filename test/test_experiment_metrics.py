@@ -140,6 +140,15 @@ def test_a_spoiled_step_is_done_again_and_a_step_never_recorded_says_so(spoiled:
     assert ("its metrics are left out" in capsys.readouterr().out) != recorded
 
 
+def test_a_loop_that_answered_late_or_with_nothing_is_called_short_of_cpu() -> None:
+    from profile_pose_ros.tools.experiment import starvation
+
+    assert starvation(5469, 1, 5412) == "" and starvation(5556, 0, 4881) == ""  # quiet runs of the main job
+    assert "no fresh correction" in starvation(1404, 330, 735)  # beside a busy core, the bridge disarmed
+    assert "only 34 %" in starvation(5601, 495, 1911)  # beside a busy core: late, rarely empty
+    assert starvation(0, 0, 0) == ""  # open loop only: nothing to judge
+
+
 @pytest.mark.alone  # a stalled stream spoils a step
 def test_the_whole_graph_steps_the_arm_open_and_closed_loop(tmp_path) -> None:
     """All six processes: the open loop rings like the paper's arm; the closed loop overshoots less."""
