@@ -39,9 +39,9 @@ if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$VENV/.profile_pose_stamp" 2>/dev/nu
   # The prebuilt estimator kernel is the longest step of a first set-up (two to three minutes): what it needs
   # goes in first, at the pinned versions, and it builds from the source tree while the rest installs.
   # The scripts wait for it (wait_for_kernel_build; test.sh beside its own set-up) rather than build again.
-  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
-    $(grep -E '^(numpy|scipy|numba|llvmlite|pyyaml|setuptools)==' "$ROOT/requirements.txt")
-  if ! kernel_built; then
+  kernel_needs="$(grep -E '^(numpy|scipy|numba|llvmlite|pyyaml|setuptools)==' "$ROOT/requirements.txt" || true)"
+  if [ -n "$kernel_needs" ] && "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check $kernel_needs &&
+      ! kernel_built; then
     echo "[setup] building the prebuilt estimator kernel beside it (once per machine and source version)" >&2
     (cd "$ROOT" && exec "$VENV/bin/python" -m profile_pose_ros.core.compiled.aot build >/dev/null 2>&1) &
     PROFILE_POSE_KERNEL_BUILD=$!
