@@ -7,5 +7,4 @@
 #   scripts/bringup.sh --composed           # the four nodes in one cell_container process
 #   scripts/bringup.sh --hardware --params-file my_cell.yaml
 source "$(dirname "$0")/venv.sh"
-wait_for_kernel_build
 exec "$VENV/bin/profile_pose_bringup" "$@"

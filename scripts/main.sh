@@ -10,7 +10,6 @@
 # (config/fast_steps.yaml; with --rate 250 also config/fast_steps_250hz.yaml). Not recorded: a bag of 1 kHz
 # profiles would be ~0.5 GB.
 source "$(dirname "$0")/venv.sh"
-wait_for_kernel_build
 GAUGE="$ROOT/config/gauge_designed_n6.yaml"
 if [ "${1:-}" = "--fast" ]; then
   shift

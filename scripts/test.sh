@@ -3,13 +3,10 @@
 source "$(dirname "$0")/venv.sh"
 cd "$ROOT"
 # The prebuilt estimator kernel (a minute or two, the first time on a machine) builds while the toolchain below
-# installs; the suite's first estimate would otherwise build it, alone. A new venv started it already (venv.sh).
-if [ -n "${PROFILE_POSE_KERNEL_BUILD:-}" ]; then
-  KERNEL_BUILD=$PROFILE_POSE_KERNEL_BUILD
-else
-  "$VENV/bin/python" -m profile_pose_ros.core.compiled.aot build >/dev/null 2>&1 &
-  KERNEL_BUILD=$!
-fi
+# installs; the suite's first estimate would otherwise build it, alone. If a new venv started it already
+# (venv.sh), this waits for that build instead of making a second (the build's lock).
+"$VENV/bin/python" -m profile_pose_ros.core.compiled.aot build >/dev/null 2>&1 &
+KERNEL_BUILD=$!
 # Beside it, on the other core: numba's JIT of the same kernels, cached on disk, for the tests that compare the
 # prebuilt kernel with it or time its stages (about 70 s of compiling they would otherwise do inside the suite).
 PROFILE_POSE_KERNEL=jit "$VENV/bin/python" - >/dev/null 2>&1 <<'PY' &

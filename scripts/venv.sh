@@ -27,24 +27,18 @@ kernel_built() {  # this machine has a build of these kernel sources (core/compi
 sys.exit(0 if aot.is_current() else 1)') 2>/dev/null
 }
 
-wait_for_kernel_build() {  # the build a new venv started below, if any: one build at a time, not one per node
-  [ -z "$PROFILE_POSE_KERNEL_BUILD" ] || wait "$PROFILE_POSE_KERNEL_BUILD" || true
-}
-
-PROFILE_POSE_KERNEL_BUILD=""
 if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$VENV/.profile_pose_stamp" 2>/dev/null)" != "$(stamp_of)" ]; then
   PY="$(find_python)"
   echo "[setup] preparing $VENV (pinned dependencies, about a minute the first time)" >&2
   [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
   # The prebuilt estimator kernel is the longest step of a first set-up (two to three minutes): what it needs
   # goes in first, at the pinned versions, and it builds from the source tree while the rest installs.
-  # The scripts wait for it (wait_for_kernel_build; test.sh beside its own set-up) rather than build again.
+  # Whatever needs the kernel meanwhile waits for this build (aot.ensure_built holds a lock while it builds).
   kernel_needs="$(grep -E '^(numpy|scipy|numba|llvmlite|pyyaml|setuptools)==' "$ROOT/requirements.txt" || true)"
   if [ -n "$kernel_needs" ] && "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check $kernel_needs &&
       ! kernel_built; then
     echo "[setup] building the prebuilt estimator kernel beside it (once per machine and source version)" >&2
     (cd "$ROOT" && exec "$VENV/bin/python" -m profile_pose_ros.core.compiled.aot build >/dev/null 2>&1) &
-    PROFILE_POSE_KERNEL_BUILD=$!
   fi
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check -r "$ROOT/requirements.txt"
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e "$ROOT"
