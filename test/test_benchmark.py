@@ -105,6 +105,32 @@ def test_quick_robustness_runs_every_condition_and_the_shipped_gauges_publish_no
     assert "fastest of 2" in stdout
 
 
+def test_gates_judge_an_opened_estimator_as_the_gated_one_would_have_and_give_the_trade(tmp_path):
+    """--gates opens the estimator's gate and judges each pose by the configured one afterwards: its main table
+    must be the plain run's, cell by cell, or the trade it prints is of another estimator."""
+    families = ("--families", "gauge_paper_n5.yaml", "random n=5")
+    _, plain = run_quick("robustness", "robustness.json", tmp_path / "plain", *families)
+    stdout, gated = run_quick("robustness", "robustness.json", tmp_path / "gated", *families,
+                              "--gates", "0.2", "0.35", "2")
+    assert gated["cells"].keys() == plain["cells"].keys()
+    for name, cell in plain["cells"].items():
+        for figure in ("refused_pct", "wrong", "nees_mean", "top_refusal"):
+            assert gated["cells"][name][figure] == pytest.approx(cell[figure], nan_ok=True), (name, figure)
+    frontier = gated["gates"]
+    assert [row["gate_mm"] for row in frontier] == [0.2, 0.35, 2.0] and "What the precision gate trades" in stdout
+    configured = frontier[1]
+    accepted = sum(c["profiles"] * (1 - c["refused_pct"] / 100) for c in plain["cells"].values())
+    assert configured["accepted"] == round(accepted) and configured["profiles"] == 2 * 10 * 12
+    # a looser gate refuses no more and publishes no fewer poses, nor predicts fewer wrong ones
+    for tighter, looser in zip(frontier, frontier[1:]):
+        assert looser["accepted"] >= tighter["accepted"] and looser["wrong_expected"] >= tighter["wrong_expected"]
+        assert looser["worst_refused_pct"] <= tighter["worst_refused_pct"]
+    assert frontier[2]["accepted"] > frontier[0]["accepted"]  # random views at 25-45 um sit between 0.2 and 2 mm
+    bands = gated["nees_by_sigma"]
+    assert [band["sigma_mm"][0] for band in bands] == [0.0, 0.2, 0.35, 2.0]
+    assert sum(band["poses"] for band in bands) >= frontier[2]["accepted"]
+
+
 def test_a_run_of_a_few_families_sees_the_profiles_the_full_run_does():
     """A family's gauges and poses follow from the seed and the family, not from its place in --families: a
     closer look at one cell of a full run reproduces that cell."""

@@ -128,7 +128,8 @@ PARAMETERS = [
     Param("use_covariance", True, "Weight each pose by its published covariance (else by measurement_std)."),
     Param("max_position_sigma", 5e-4, "Refuse a pose whose covariance puts its position's largest standard "
           "deviation beyond this (m; with use_covariance): how precise a pose must be to steer the arm is this "
-          "node's decision, the estimator publishes every pose it can describe honestly.", 1e-6, 1.0),
+          "node's decision (pose_estimator's own gate, 0.35 mm by default, can be opened to leave it to this "
+          "one alone).", 1e-6, 1.0),
     Param("measurement_std", 5e-5, "Pose noise assumed when use_covariance is false (m; rad the same number).",
           1e-7, 1e-2),
     Param("max_pose_age", 0.05, "A pose older than this (by its stamp) is stale: zero correction (s).", 0.001, 1.0),

@@ -76,8 +76,9 @@ PARAMETERS = [
     Param("basin_search_min_sigma", 2.5e-4, "Search when the refined position's largest standard deviation "
           "exceeds this (m); the shipped gauge at 5 um noise is near 0.07 mm.", 0.0, 1.0),
     Param("max_position_sigma", 3.5e-4, "Reject a pose whose position standard deviation (largest, m) exceeds "
-          "this: the view determines it too poorly for its covariance to be honest (docs/estimator.md). The "
-          "shipped gauges are near 0.02-0.2 mm at 5 um noise.", 1e-6, 1.0),
+          "this: fewer refused views against more poses over 1 mm off (its covariance stays honest beyond it; "
+          "`profile_pose robustness --gates` measures the trade for a gauge, docs/estimator.md). The shipped "
+          "gauges are near 0.02-0.2 mm at 5 um noise.", 1e-6, 1.0),
     Param("noise_std", 0.0, "Profiler depth noise (m) for the covariance; 0 estimates it from each face fit.",
           0.0, 1e-3),
     Param("rdp_epsilon", 3e-4, "RDP tolerance for corner candidates (m).", 1e-6, 5e-3),

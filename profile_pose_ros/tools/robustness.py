@@ -14,6 +14,13 @@ estimator's gate (then no estimator determines the view well enough to pass it),
 estimator reaching the bound would have been wrong had it published the pose (a Gaussian at the bound).
 Refusals beyond the bound are the view's, not the estimator's; publishing them costs that many wrong poses.
 
+--gates asks what the estimator's precision gate (max_position_sigma) trades: the run publishes every pose
+the estimator can (its gate opened), the main table still judges each by the configured gate, and a second
+table gives, for each candidate gate, the worst refusal rate among the cells at the profiler's own noise, the
+wrong poses published and the wrong poses the published poses' covariances predict; a third, NEES by the
+position std each pose claimed: whether the covariance stays honest beyond the gate. A commissioning engineer
+can run it on the cell's own gauge file before choosing a gate.
+
 Every cell also says how many wrong poses its accepted poses' own covariances predict (the chance each has
 of being wrong, were its error the Gaussian its covariance describes, summed): an estimator whose covariance
 is honest publishes about that many, and no gate above the poses' σ removes them.
@@ -26,6 +33,7 @@ profile: a lower bound, which tells the estimator's own slow paths from the mach
 from __future__ import annotations
 
 import argparse
+import math
 import multiprocessing
 import os
 import re
@@ -42,7 +50,7 @@ from ..core.compiled.render_kernel import trace_depth_fast
 from ..core.design.crlb import dense_crlb_of_points
 from ..core.design.gauge_design import random_gauge
 from ..core.estimation.estimator import pose_nees, warm_up
-from ..core.estimation.result import REFINE_MODELS, EstimatorOptions, position_sigma
+from ..core.estimation.result import REFINE_MODELS, EstimatorOptions, position_sigma, reason_poorly_determined
 from ..core.model.gauge import Gauge
 from ..core.model.render import true_corners
 from ..resources import config_path
@@ -128,11 +136,14 @@ def may_be_wrong(covariance: np.ndarray) -> bool:
 
 
 def family_trial(task: tuple) -> list[dict]:
-    """Every condition on the same poses of one gauge: one record per profile."""
-    family, gauge_index, seed, poses, overrides, bound, repeats = task
+    """Every condition on the same poses of one gauge: one record per profile. judged_gate (m, or None): the
+    precision gate each record's "ok" is judged by when the estimator ran with its own gate opened (--gates);
+    "published" says what that estimator published."""
+    family, gauge_index, seed, poses, overrides, bound, repeats, judged_gate = task
     gauge = family_gauges(family, gauge_index + 1, seed)[gauge_index]
     rng = np.random.default_rng(seed * 7919 + gauge_index)
     options = EstimatorOptions().with_changes(**overrides)  # once, as a node holds them
+    judged = None if judged_gate is None else options.with_changes(max_position_sigma=judged_gate)
     warm_up(gauge, options)  # the kernels loaded (or built) before the first timed profile
     records, unbounded, uncertain = [], [], []
     for _ in range(poses):
@@ -150,17 +161,18 @@ def family_trial(task: tuple) -> list[dict]:
                 start = time.perf_counter()
                 estimate_pose(points, gauge, options)
                 fastest = min(fastest, time.perf_counter() - start)
-            record = {"condition": condition, "ok": estimate.ok, "reason": estimate.reason, "time": elapsed,
-                      "fastest": fastest}
-            if bound and not estimate.ok:
-                unbounded.append((record, points, rotation, t, noise))
+            record = {"condition": condition, "ok": estimate.ok, "published": estimate.ok, "reason": estimate.reason,
+                      "time": elapsed, "fastest": fastest}
             if estimate.ok:
                 position, rotation_error = pose_error(estimate.R, estimate.t, rotation, t)
                 record.update(position=position, rotation=rotation_error, nees=pose_nees(estimate, rotation, t),
-                              sigma=float(np.sqrt(np.linalg.eigvalsh(estimate.covariance[:3, :3]).max())),
-                              wrong_expected=0.0)
+                              sigma=estimate.position_sigma, wrong_expected=0.0)
                 if may_be_wrong(estimate.covariance):
                     uncertain.append((record, estimate.covariance))
+                if judged is not None and estimate.position_sigma > judged.max_position_sigma:
+                    record.update(ok=False, reason=reason_poorly_determined(estimate.position_sigma, judged))
+            if bound and not record["ok"]:
+                unbounded.append((record, points, rotation, t, noise))
             records.append(record)
     draws = np.random.default_rng(seed * 7919 + gauge_index + 1)
     for record, covariance in uncertain:  # summed over a cell: fewer draws a pose, independent ones
@@ -201,6 +213,40 @@ def cell(records: list[dict], gate: float) -> dict:
                 "wrong_if_refused_published": sum(r["wrong_if_published"] for r in bounded)} if bounded else {})}
 
 
+def gate_frontier(by_cell: dict[tuple[str, str], list[dict]], gates: list[float]) -> list[dict]:
+    """What each candidate precision gate (m) would have published of a run made with the gate opened: per gate,
+    the worst cell's refusal rate among the cells at the profiler's own noise (the noise sweep's refusals are
+    the gate's purpose), the wrong poses published and those the published poses' covariances predict."""
+    base = {key: records for key, records in by_cell.items() if CONDITIONS[key[1]][0] == BASE_NOISE}
+    everything = [r for records in by_cell.values() for r in records]
+    rows = []
+    for gate in gates:
+        def kept(r: dict) -> bool:
+            return r["published"] and r["sigma"] <= gate
+        refused = {key: 100.0 * sum(not kept(r) for r in records) / len(records) for key, records in base.items()}
+        worst = max(refused, key=refused.get) if refused else None
+        published = [r for r in everything if kept(r)]
+        rows.append({"gate_mm": gate * 1e3, "profiles": len(everything), "accepted": len(published),
+                     "worst_refused_pct": refused[worst] if worst else float("nan"),
+                     "worst_cell": " | ".join(worst) if worst else "",
+                     "wrong": sum(r["position"] > WRONG_POSITION or r["rotation"] > WRONG_ROTATION for r in published),
+                     "wrong_expected": sum(r["wrong_expected"] for r in published)})
+    return rows
+
+
+def nees_by_sigma(records: list[dict], edges: list[float]) -> list[dict]:
+    """NEES of the published poses by the position std they claimed, in bands between edges (m): an honest
+    covariance reads about 6 in every band, so where it stops being honest shows as the band it rises in."""
+    published = [r for r in records if r["published"]]
+    rows = []
+    for low, high in zip(edges[:-1], edges[1:]):
+        nees = np.array([r["nees"] for r in published if low < r["sigma"] <= high])
+        rows.append({"sigma_mm": [low * 1e3, high * 1e3], "poses": int(nees.size),
+                     "nees_mean": float(nees.mean()) if nees.size else float("nan"),
+                     "nees_beyond_99_pct": 100.0 * float((nees > NEES_99).mean()) if nees.size else float("nan")})
+    return rows
+
+
 def _option(item: str) -> tuple[str, object]:
     """OPTION=VALUE as the estimator takes it (YAML's reading of VALUE: numbers, true/false, inf)."""
     import yaml
@@ -230,6 +276,10 @@ def main(argv=None) -> int:
                         help="for every refused profile, the dense Cramer-Rao bound at the truth: how many refusals "
                              "no estimator could have passed the gate with, and the wrong poses publishing them "
                              "would cost an estimator at the bound")
+    parser.add_argument("--gates", nargs="+", type=float, default=[], metavar="MM",
+                        help="candidate precision gates (max_position_sigma, mm): run with the estimator's gate "
+                             "opened and report what each would refuse, publish wrong and predict wrong, and the NEES "
+                             "by claimed position std (the main table still judges by the configured gate)")
     parser.add_argument("--repeats", type=int, default=1,
                         help="time each profile this many times: the first call's time stays the one reported "
                              "(what a node sees), the fastest is reported beside it (the estimator's own cost with "
@@ -240,17 +290,22 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
+    if any(not gate > 0 for gate in args.gates):
+        parser.error("--gates must be positive (mm)")
     gauges, poses = (2, 6) if args.quick else (args.gauges, args.poses)
     options = {"refine_model": args.refine_model, **dict(_option(item) for item in args.set)}
+    gate = EstimatorOptions().with_changes(**options).max_position_sigma
+    judged_gate = gate if args.gates else None
+    run_options = {**options, "max_position_sigma": math.inf} if args.gates else options
     tasks = []
     for family in args.families:
         f = _family_index(family, args.families)
         if family.startswith("random n="):
-            tasks += [(family, k, args.seed + 101 * f, poses, options, args.bound, args.repeats)
+            tasks += [(family, k, args.seed + 101 * f, poses, run_options, args.bound, args.repeats, judged_gate)
                       for k in range(gauges)]
         else:  # one shipped gauge, as many poses as a random family has
-            tasks += [(family, 0, args.seed + 101 * f + k, poses, options, args.bound, args.repeats)
-                      for k in range(gauges)]
+            tasks += [(family, 0, args.seed + 101 * f + k, poses, run_options, args.bound, args.repeats,
+                       judged_gate) for k in range(gauges)]
     from tqdm import tqdm
 
     context = None
@@ -263,7 +318,6 @@ def main(argv=None) -> int:
     for task, records in zip(tasks, results):
         for record in records:
             by_cell.setdefault((task[0], record["condition"]), []).append(record)
-    gate = EstimatorOptions().with_changes(**options).max_position_sigma
     cells = {f"{family} | {condition}": cell(records, gate) for (family, condition), records in by_cell.items()}
     rows = [[name.split(" | ")[0].replace(".yaml", ""), name.split(" | ")[1], str(c["profiles"]),
              f"{c['refused_pct']:.1f}", f"{c['wrong']} / {c['wrong_expected']:.2f}", f"{c['overconfident_pct']:.1f}",
@@ -284,10 +338,33 @@ def main(argv=None) -> int:
     expected = sum(c["wrong_expected"] for c in cells.values())
     print(f"\n{sum(c['profiles'] for c in cells.values())} profiles, {accepted:.0f} accepted, {wrong:.0f} wrong "
           f"({expected:.1f} expected from the accepted poses' own covariances)")
+    report = {"options": options, "cells": cells}
+    if args.gates:
+        report.update(print_gates(by_cell, sorted(g * 1e-3 for g in args.gates), gate))
     out = run_dir(args.out, "robustness")
-    write_json(out / "robustness.json", {"options": options, "cells": cells})
+    write_json(out / "robustness.json", report)
     print(f"\nresults: {out / 'robustness.json'}")
     return 0
+
+
+def print_gates(by_cell: dict[tuple[str, str], list[dict]], gates: list[float], configured: float) -> dict:
+    """--gates' two tables, printed; their rows for the report."""
+    frontier = gate_frontier(by_cell, gates)
+    per_5000 = 5000.0 / max(frontier[0]["profiles"], 1)
+    print(table(["gate (mm)", "accepted", "worst refused % at base noise", "in", "wrong", "expected",
+                 "expected per 5,000"],
+                [[f"{row['gate_mm']:.3f}" + (" *" if math.isclose(row["gate_mm"], configured * 1e3) else ""),
+                  str(row["accepted"]), f"{row['worst_refused_pct']:.1f}", row["worst_cell"].replace(".yaml", ""),
+                  str(row["wrong"]), f"{row['wrong_expected']:.2f}", f"{row['wrong_expected'] * per_5000:.2f}"]
+                 for row in frontier],
+                title=f"\nWhat the precision gate trades (* the configured {configured * 1e3:g} mm; base noise "
+                      f"{BASE_NOISE * 1e6:g} um: every condition but the noise sweep)"))
+    bands = nees_by_sigma([r for records in by_cell.values() for r in records], [0.0, *gates, math.inf])
+    print(table(["claimed position std (mm)", "poses", "NEES mean", "NEES>16.8 %"],
+                [[f"{low:.3f} - {high:.3f}", str(row["poses"]), f"{row['nees_mean']:.2f}",
+                  f"{row['nees_beyond_99_pct']:.1f}"] for row in bands for low, high in [row["sigma_mm"]]],
+                title="\nNEES of every published pose by the position std it claimed (6 if the covariance is honest)"))
+    return {"gates": frontier, "nees_by_sigma": bands}
 
 
 if __name__ == "__main__":

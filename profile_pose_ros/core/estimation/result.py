@@ -43,9 +43,11 @@ class EstimatorOptions:
     max_iterations: int = 30
     basin_search: bool = True  # look for a lower minimum around a poorly determined pose (compiled/search_kernel.py)
     basin_search_min_sigma: float = 2.5e-4  # m; search when the refined position's largest std exceeds this
-    # m; reject a pose whose position's largest std exceeds this: the profile determines it so poorly that its
-    # linearised covariance understates the error (NEES beyond 0.35 mm: docs/estimator.md, "Unclean
-    # profiles"), so nothing downstream could weight it right. The shipped gauges are near 0.02-0.2 mm at 5 um.
+    # m; reject a pose whose position's largest std exceeds this. Its covariance would still be honest (NEES
+    # about 5.4 up to 1 mm), but such a pose is more than 1 mm off a few times in a thousand: the gate trades
+    # refused views against wrong poses, and 0.35 mm is where the two meet (docs/estimator.md, "The gate's
+    # trade"; `profile_pose robustness --gates` measures it for any gauge). The shipped gauges are near
+    # 0.02-0.2 mm at 5 um.
     max_position_sigma: float = 3.5e-4
     # when corner detection finds a corner too few beside a gap, solve the gauge without the face the gap hid
     hidden_faces: bool = True
