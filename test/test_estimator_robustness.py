@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 
 from profile_pose_ros.core import estimate_pose, pose_error, render_profile, sample_pose, true_corners
 from profile_pose_ros.core.estimation.estimator import pose_nees
-from profile_pose_ros.core.compiled.codes import GAP_PITCHES
+from profile_pose_ros.core.compiled.codes import GAP_PITCHES, MAX_GLINT_RUN
 from profile_pose_ros.core.compiled.estimate_kernel import _drop_spikes, _median5, profile_gaps
 from profile_pose_ros.core.model.gauge import Gauge, GaugeError
 from profile_pose_ros.core.design.gauge_design import random_gauge
@@ -21,27 +21,45 @@ def test_median_of_five_is_the_median(values):
     assert _median5(*values) == np.median(values)
 
 
-@settings(max_examples=200, deadline=None)
-@given(st.integers(5, 300), st.lists(st.tuples(st.integers(0, 299), st.floats(-2e-3, 2e-3)), max_size=8),
+@settings(max_examples=300, deadline=None)
+@given(st.integers(5, 300), st.lists(st.tuples(st.integers(0, 299), st.integers(1, 20), st.floats(-2e-3, 2e-3)),
+                                     max_size=8),
        st.floats(0.0, 2e-5))
-def test_spikes_are_the_points_off_the_median_of_their_five(n, spikes, noise):
-    """The compiled filter (which skips a profile without suspects and moves points only from the first spike
-    on) against numpy: a point is dropped when it lies half the threshold off the line through its neighbours
-    and the threshold off the median of the five around it; the two at either end never are."""
+def test_the_compiled_glint_filter_drops_what_the_plain_one_does(n, glints, noise):
+    """The compiled filter (which skips a profile without suspects, moves points only from the first spike on
+    and tests runs from the last point it kept) against the baseline's, written the plain way: single points
+    off the median of their five, and runs of glints side by side, on a corner's two faces."""
+    from profile_pose_ros.tools.numpy_baseline import _without_spikes
+
     threshold = 1.5e-4
     x = np.arange(n) * 5e-5
     z = 0.4 + 0.7 * np.abs(x - x[n // 2]) + np.random.default_rng(n).normal(0.0, noise, n)
-    for index, height in spikes:
-        z[index % n] += height
-    inner = np.arange(2, n - 2)
-    off_line = np.abs(z[inner] - 0.5 * (z[inner - 1] + z[inner + 1])) > 0.5 * threshold
-    off_median = np.abs(z[inner] - np.median(np.stack([z[inner + k] for k in range(-2, 3)]), axis=0)) > threshold
-    keep = np.ones(n, dtype=bool)
-    keep[inner[off_line & off_median]] = False
+    for start, length, height in glints:
+        z[start % n:start % n + length] += height
+    expected = _without_spikes(np.column_stack([x, z]), threshold)
     px, pz = x.copy(), z.copy()
     kept = _drop_spikes(px, pz, n, threshold)
-    assert kept == keep.sum()
-    assert np.array_equal(px[:kept], x[keep]) and np.array_equal(pz[:kept], z[keep])
+    assert kept == len(expected)
+    assert np.array_equal(px[:kept], expected[:, 0]) and np.array_equal(pz[:kept], expected[:, 1])
+
+
+@pytest.mark.parametrize("length", [1, 2, 3, 5, 8, MAX_GLINT_RUN])
+def test_a_glint_of_several_points_goes_whole_and_the_faces_stay(length):
+    """A specular glint lights a few pixels side by side; three or more are their own median of five, so the
+    filter tests a run that steps off its face as a whole: every point of it goes, beside a corner too, and no
+    point of the faces does. A run longer than a glint is left to the segments."""
+    x = np.arange(400) * 5e-5
+    face = 0.4 + 0.7 * np.abs(x - x[200])  # a corner at point 200
+    for start, height in ((60, 4e-4), (196, -1.2e-3), (198, 2e-3), (330, 3e-4)):
+        z = face + np.random.default_rng(start).normal(0.0, 3e-6, 400)
+        z[start:start + length] += height
+        px, pz = x.copy(), z.copy()
+        kept = _drop_spikes(px, pz, 400, 1.5e-4)
+        assert kept == 400 - length and set(px[:kept]) == set(np.delete(x, range(start, start + length))), (
+            start, length)
+    z = face.copy()
+    z[100:100 + MAX_GLINT_RUN + 1] += 1e-3
+    assert _drop_spikes(x.copy(), z, 400, 1.5e-4) >= 400 - 2  # at most its two ends, by their median of five
 
 
 @settings(max_examples=200, deadline=None)

@@ -17,6 +17,7 @@ from scipy.optimize import least_squares
 from ..core.estimation.corners import (REASON_CORNERS_NOT_INCREASING, REASON_X_NOT_INCREASING, ROBUST_PASSES,
                                        CornerOptions, CornerResult, LineFit, reason_corner_count,
                                        reason_corner_not_between, reason_steep_segment, reason_too_few_points)
+from ..core.compiled.codes import MAX_GLINT_RUN
 from ..core.estimation.result import EstimatorOptions
 from ..core.estimation.residuals import (REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank,
                                          residual_covariance)
@@ -129,16 +130,44 @@ def _merge_collinear(points: np.ndarray, lines: list[LineFit], options: CornerOp
 
 
 def _without_spikes(pts: np.ndarray, threshold: float) -> np.ndarray:
-    """pts without those off the median depth of their five neighbours by more than threshold (glints)."""
+    """pts without the glints: the points off the median depth of their five neighbours by more than threshold,
+    and the runs of up to MAX_GLINT_RUN points side by side that step off their face by more than threshold
+    (compiled/estimate_kernel.py: _drop_spikes says why; the same decisions, written the plain way)."""
     if threshold <= 0 or len(pts) < 5:
         return pts
-    z = pts[:, 1]
+    x, z = pts[:, 0], pts[:, 1]
     inner = z[2:-2]
     off_line = np.abs(inner - 0.5 * (z[1:-3] + z[3:-1])) > 0.5 * threshold
+    if not off_line.any():
+        return pts
     off_median = np.abs(inner - np.median(np.lib.stride_tricks.sliding_window_view(z, 5), axis=1)) > threshold
     spike = np.zeros(len(pts), dtype=bool)
     spike[2:-2] = off_line & off_median
+    outer, anchor = 0, 1  # the last two points kept
+    for i in range(2, len(z) - 2):
+        if spike[i]:
+            continue
+        if abs(z[i] - z[anchor]) > threshold:
+            end = _glint_run_end(x, z, outer, anchor, i, threshold)
+            if end > i:
+                spike[i:end] = True
+                continue
+        outer, anchor = anchor, i
     return pts[~spike]
+
+
+def _glint_run_end(x: np.ndarray, z: np.ndarray, outer: int, anchor: int, i: int, threshold: float) -> int:
+    """The first j after the run from i whose line from the anchor leaves every run point more than threshold
+    off and the two points beyond within it; -1 if none (estimate_kernel._displaced_run_end)."""
+    for j in range(max(i + 1, anchor + 3), min(i + MAX_GLINT_RUN, len(z) - 2) + 1):
+        if not x[j] > x[anchor]:
+            return -1
+        slope = (z[j] - z[anchor]) / (x[j] - x[anchor])
+        line = lambda k: z[anchor] + slope * (x[k] - x[anchor])  # noqa: E731
+        if abs(z[outer] - line(outer)) <= threshold and abs(z[j + 1] - line(j + 1)) <= threshold and all(
+                abs(z[m] - line(m)) > threshold for m in range(i, j)):
+            return j
+    return -1
 
 
 def detect_corners(points: np.ndarray, n_corners: int, options: CornerOptions = CornerOptions()) -> CornerResult:

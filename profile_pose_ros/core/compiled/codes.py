@@ -52,6 +52,10 @@ DENSE_NEVER, DENSE_ALWAYS, DENSE_WHEN_POORLY_DETERMINED = 0, 1, 2  # O_DENSE: re
 
 JIT = dict(cache=True, error_model="numpy", nogil=True)  # numba.njit options of every compiled function
 
+# the longest glint (points side by side) the glint filter drops whole (estimate_kernel._drop_spikes); a longer
+# run is wider than a glint lights and is left to the segments (shorter than a face, it is debris there)
+MAX_GLINT_RUN = 16
+
 # the refinement's final Gauss-Newton polish
 POLISH_STEPS = 4
 POLISH_COST_TOLERANCE = 1e-9

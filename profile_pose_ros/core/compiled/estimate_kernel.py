@@ -11,10 +11,10 @@ import math
 
 import numpy as np
 
-from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, JIT, O_EPS, O_FLOOR, O_GAP,
-                    O_MAXFACE, O_MAXOFF, O_MINANGLE, O_MINSEG, O_NOISE, O_PASSES, O_ROBUST, O_SIGFLOOR, O_SPIKE, O_THR,
-                    O_TRIM, OK, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS, REWEIGHT_CHI2,
-                    REWEIGHT_HOPELESS_CHI2, REWEIGHT_ROUNDS, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS,
+from .codes import (CF_DEGENERATE, CF_RANK, CORNER_NOT_BETWEEN, CORNERS_NOT_INCREASING, JIT, MAX_GLINT_RUN, O_EPS,
+                    O_FLOOR, O_GAP, O_MAXFACE, O_MAXOFF, O_MINANGLE, O_MINSEG, O_NOISE, O_PASSES, O_ROBUST, O_SIGFLOOR,
+                    O_SPIKE, O_THR, O_TRIM, OK, POLISH_COST_TOLERANCE, POLISH_STEP_TOLERANCE, POLISH_STEPS,
+                    REWEIGHT_CHI2, REWEIGHT_HOPELESS_CHI2, REWEIGHT_ROUNDS, SINGULAR, STEEP_SEGMENT, TOO_FEW_POINTS,
                     WRONG_CORNER_COUNT, X_NOT_INCREASING)
 from .kernel import kernel
 
@@ -267,13 +267,43 @@ def _off_its_neighbours(pz, i, distance):
 
 
 @kernel(**JIT)
+def _displaced_run_end(px, pz, outer, anchor, i, n, threshold):
+    """Where a glint of several points starting at i ends: the first j (at least two points after the anchor,
+    at most MAX_GLINT_RUN after i) such that every point from i to j - 1 lies more than `threshold` off the line
+    through the points `anchor` and j, and `outer` and j + 1 lie within it (the line is the face's, not the
+    glint's); -1 if there is none. anchor and outer are the last two points before i that were not dropped
+    (i - 1 and i - 2 unless a glint just was). A corner inside the run bends the face by its slope change
+    times a few pitches, far below the threshold."""
+    for j in range(max(i + 1, anchor + 3), min(i + MAX_GLINT_RUN, n - 2) + 1):
+        if not px[j] > px[anchor]:
+            return -1
+        slope = (pz[j] - pz[anchor]) / (px[j] - px[anchor])
+        if not (abs(pz[outer] - pz[anchor] - slope * (px[outer] - px[anchor])) <= threshold and
+                abs(pz[j + 1] - pz[anchor] - slope * (px[j + 1] - px[anchor])) <= threshold):
+            continue
+        off = True
+        for m in range(i, j):
+            if not abs(pz[m] - pz[anchor] - slope * (px[m] - px[anchor])) > threshold:
+                off = False
+                break
+        if off:
+            return j
+    return -1
+
+
+@kernel(**JIT)
 def _drop_spikes(px, pz, n, threshold):
     """Remove, in place, the points more than `threshold` off the median depth of their five neighbours in scan
-    order; returns how many remain. A glint's depth is unrelated to the face's: left in, RDP breaks the face at
-    it, and a break next to a corner leaves a short segment across the corner, fitted at an in-between slope
-    and kept as an extra face. A median of five keeps a face's points (a straight run is its own median, at
-    any slope) and a corner's within its slope change times the point pitch; two glints side by side still
-    go. Only points off the line through their two neighbours by half the threshold are tested.
+    order, and the glints of up to MAX_GLINT_RUN points side by side (_displaced_run_end); returns how many
+    remain. A glint's depth is unrelated to the face's: left in, RDP breaks the face at it, and a break next to
+    a corner leaves a short segment across the corner, fitted at an in-between slope and kept as an extra
+    face. A median of five keeps a face's points (a straight run is its own median, at any slope) and a
+    corner's within its slope change times the point pitch; two glints side by side still go; it tests only
+    points off the line through their two neighbours by half the threshold. A specular glint often lights a
+    few neighbouring pixels, and three or more side by side are their own median: where the profile steps more
+    than the threshold from the last point kept, the points from there on are tested as one run (measured from
+    the last point kept, a second glint right after a first is found too). A profile with such a run has a
+    suspect (the face point before it is off the line through its neighbours).
 
     Most profiles have no such point: they are counted first, in a loop without branches (it vectorises), and
     a profile without any returns at once; the rest are moved only from the first spike on."""
@@ -287,11 +317,22 @@ def _drop_spikes(px, pz, n, threshold):
         return n
     spike = np.zeros(n, dtype=np.bool_)
     first = n
+    outer, anchor = 0, 1  # the last two points kept before i
     for i in range(2, n - 2):
-        if _off_its_neighbours(pz, i, half):
-            if abs(pz[i] - _median5(pz[i - 2], pz[i - 1], pz[i], pz[i + 1], pz[i + 2])) > threshold:
-                spike[i] = True
+        if spike[i]:
+            continue
+        if _off_its_neighbours(pz, i, half) and abs(
+                pz[i] - _median5(pz[i - 2], pz[i - 1], pz[i], pz[i + 1], pz[i + 2])) > threshold:
+            spike[i] = True
+            first = min(first, i)
+            continue
+        if abs(pz[i] - pz[anchor]) > threshold:
+            end = _displaced_run_end(px, pz, outer, anchor, i, n, threshold)
+            if end > i:
+                spike[i:end] = True
                 first = min(first, i)
+                continue
+        outer, anchor = anchor, i
     kept = first
     for i in range(first, n):
         if not spike[i]:
