@@ -87,11 +87,14 @@ def test_quick_robustness_runs_every_condition_and_the_shipped_gauges_publish_no
     stdout, data = run_quick("robustness", "robustness.json", tmp_path, "--bound", "--repeats", "2")
     cells = data["cells"]
     conditions = {name.split(" | ")[1] for name in cells}
-    assert {"clean", "spikes 5 %", "gap over a corner", "gap between corners", "noise 45 um"} <= conditions
+    assert {"clean", "spikes 5 %", "gap over a corner", "gap between corners", "noise 45 um",
+            "glints 2 % (runs of 3-8)", "glints 5 % (runs of 3-8)"} <= conditions
     shipped = {k: c for k, c in cells.items() if k.startswith("gauge_")}
     assert shipped and all(c["wrong_pct"] == 0 for c in shipped.values())
-    assert all(shipped[f"{gauge} | spikes {rate} %"]["refused_pct"] == 0
-               for gauge in ("gauge_paper_n5.yaml", "gauge_designed_n6.yaml") for rate in ("0.5", "1", "2", "5"))
+    assert all(shipped[f"{gauge} | {condition}"]["refused_pct"] == 0
+               for gauge in ("gauge_paper_n5.yaml", "gauge_designed_n6.yaml")
+               for condition in ("spikes 0.5 %", "spikes 1 %", "spikes 2 %", "spikes 5 %", "glints 2 % (runs of 3-8)",
+                                 "glints 5 % (runs of 3-8)"))
     assert "profiles," in stdout and "accepted" in stdout
     # --bound: every cell that refused something holds its refusals against the Cramer-Rao bound
     refusing = [c for c in cells.values() if c["refused_pct"] > 0]

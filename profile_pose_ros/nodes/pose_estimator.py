@@ -90,7 +90,8 @@ PARAMETERS = [
     Param("max_corner_offset", 1e-3, "A corner must lie between its two faces to within this (m).", 1e-5, 0.01),
     Param("robust_line_fit", True, "Reject outlier points (spikes) in each face line fit."),
     Param("spike_threshold", 1.5e-4, "Drop points this far (m) off the median depth of their five neighbours "
-          "before corner detection (glints); 0 keeps every point.", 0.0, 0.01),
+          "before corner detection, and runs of up to 16 side by side this far off their face (glints); 0 keeps "
+          "every point.", 0.0, 0.01),
     Param("hidden_faces", True, "When corner detection finds one corner too few beside a gap in the profile, "
           "solve the gauge without the face the gap hid (its neighbours' extrapolated crossing as the corner) and "
           "publish that pose if it puts the hidden face inside the gap."),

@@ -78,6 +78,10 @@ CONDITIONS = {
     "noise 25 um": (25e-6, 0.0, None),
     "noise 45 um": (45e-6, 0.0, None),
 }
+# glints as a specular face gives them, a few pixels side by side: condition -> share of the points, at BASE_NOISE.
+# Drawn from a generator of their own, so that adding them left every cell above with the profiles it had
+GLINT_CONDITIONS = {"glints 2 % (runs of 3-8)": 0.02, "glints 5 % (runs of 3-8)": 0.05}
+GLINT_RUN = (3, 8)  # points a glint lights, fewest and most
 
 
 def _family_index(family: str, families: list[str]) -> int:
@@ -108,6 +112,28 @@ def with_gap(points: np.ndarray, corners_x: np.ndarray, placement: str, rng: np.
     gapped = points.copy()
     gapped[np.abs(points[:, 0] - centre) < width / 2, 1] = np.nan
     return gapped
+
+
+def with_glints(points: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """points with glints on about `fraction` of the valid ones: runs of GLINT_RUN points side by side, each run
+    off the face by one height (0.2-2 mm, either way, as render_profile's spikes) shaped as a peak (half of it
+    at the run's ends), each point within 20 % of its share."""
+    glinted = points.copy()
+    valid = np.flatnonzero(np.isfinite(points[:, 1]))
+    budget = int(round(fraction * len(valid)))
+    while budget > 0 and len(valid):
+        start = int(rng.integers(len(valid)))
+        run = valid[start:start + int(rng.integers(GLINT_RUN[0], GLINT_RUN[1] + 1))]
+        peak = 0.5 + 0.5 * np.sin(np.pi * np.arange(1, len(run) + 1) / (len(run) + 1))
+        glinted[run, 1] += (rng.choice([-1.0, 1.0]) * rng.uniform(2e-4, 2e-3) * peak *
+                            rng.uniform(0.8, 1.2, len(run)))
+        budget -= len(run)
+    return glinted
+
+
+def condition_noise(condition: str) -> float:
+    """The depth noise a condition's profiles have (m)."""
+    return BASE_NOISE if condition in GLINT_CONDITIONS else CONDITIONS[condition][0]
 
 
 def wrong_if_published(covariance: np.ndarray, draws: int = 20000, rng: np.random.Generator | None = None) -> float:
@@ -145,15 +171,13 @@ def family_trial(task: tuple) -> list[dict]:
     options = EstimatorOptions().with_changes(**overrides)  # once, as a node holds them
     judged = None if judged_gate is None else options.with_changes(max_position_sigma=judged_gate)
     warm_up(gauge, options)  # the kernels loaded (or built) before the first timed profile
+    glint_rng = np.random.default_rng(seed * 7919 + gauge_index + 2)
     records, unbounded, uncertain = [], [], []
     for _ in range(poses):
         rotation, t = sample_pose(gauge, rng, trace=trace_depth_fast)
         corners_x = true_corners(gauge, rotation, t)[:, 0]
-        for condition, (noise, spikes, gap) in CONDITIONS.items():
-            points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, spike_fraction=spikes,
-                                    trace=trace_depth_fast)
-            if gap:
-                points = with_gap(points, corners_x, gap, rng)
+        for condition, profile in _profiles(gauge, rotation, t, corners_x, rng, glint_rng):
+            points, noise = profile
             start = time.perf_counter()
             estimate = estimate_pose(points, gauge, options)
             elapsed = fastest = time.perf_counter() - start
@@ -182,6 +206,18 @@ def family_trial(task: tuple) -> list[dict]:
         crlb = dense_crlb_of_points(gauge, points, rotation, t, noise)
         record.update(crlb_sigma=position_sigma(crlb[:3, :3]), wrong_if_published=wrong_if_published(crlb))
     return records
+
+
+def _profiles(gauge: Gauge, rotation: np.ndarray, t: np.ndarray, corners_x: np.ndarray, rng: np.random.Generator,
+              glint_rng: np.random.Generator):
+    """(condition, (points, noise)) for every condition at one pose, rendered as each needs."""
+    for condition, (noise, spikes, gap) in CONDITIONS.items():
+        points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, spike_fraction=spikes,
+                                trace=trace_depth_fast)
+        yield condition, (with_gap(points, corners_x, gap, rng) if gap else points, noise)
+    for condition, fraction in GLINT_CONDITIONS.items():
+        points = render_profile(gauge, rotation, t, noise_std=BASE_NOISE, rng=glint_rng, trace=trace_depth_fast)
+        yield condition, (with_glints(points, fraction, glint_rng), BASE_NOISE)
 
 
 def reason_kind(reason: str) -> str:
@@ -217,7 +253,7 @@ def gate_frontier(by_cell: dict[tuple[str, str], list[dict]], gates: list[float]
     """What each candidate precision gate (m) would have published of a run made with the gate opened: per gate,
     the worst cell's refusal rate among the cells at the profiler's own noise (the noise sweep's refusals are
     the gate's purpose), the wrong poses published and those the published poses' covariances predict."""
-    base = {key: records for key, records in by_cell.items() if CONDITIONS[key[1]][0] == BASE_NOISE}
+    base = {key: records for key, records in by_cell.items() if condition_noise(key[1]) == BASE_NOISE}
     everything = [r for records in by_cell.values() for r in records]
     rows = []
     for gate in gates:
