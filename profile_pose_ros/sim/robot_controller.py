@@ -158,11 +158,11 @@ class RobotController:
                 self.arm.advance(TICK_S)
                 pose = mp.metres_to_units(self.pose_of(self.arm.position))
             self.moved += self.app.tick(pose)
-            # The period is the application's: it sent its STATE in the cycle that made its count a multiple of
-            # the period. Counting this clock's own ticks instead put the trigger a tick or two after the STATE
-            # whenever the application's task had missed a tick at start, and the phase moved with every tick
-            # it missed later: at 3.8 ms after the STATE a correction came after the bridge's answer_wait and
-            # every answer left a period late (2 % of them fresh in one run, 85 % in the next).
+            # The period is the application's: its STATE went out in the cycle that made its count a multiple of
+            # the period, and the trigger follows that STATE, as the real controller's task does both. This
+            # clock's own tick count drifts from the application's whenever its task misses a tick, and a
+            # trigger a tick after the STATE makes each correction miss the bridge's answer_wait
+            # (docs/performance.md, "The simulated trigger's phase").
             status = self.app.status()
             if status.cycles // self.period_ticks != period:
                 period = status.cycles // self.period_ticks

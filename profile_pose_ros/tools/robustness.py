@@ -176,8 +176,7 @@ def family_trial(task: tuple) -> list[dict]:
     for _ in range(poses):
         rotation, t = sample_pose(gauge, rng, trace=trace_depth_fast)
         corners_x = true_corners(gauge, rotation, t)[:, 0]
-        for condition, profile in _profiles(gauge, rotation, t, corners_x, rng, glint_rng):
-            points, noise = profile
+        for condition, points, noise in _profiles(gauge, rotation, t, corners_x, rng, glint_rng):
             start = time.perf_counter()
             estimate = estimate_pose(points, gauge, options)
             elapsed = fastest = time.perf_counter() - start
@@ -210,14 +209,14 @@ def family_trial(task: tuple) -> list[dict]:
 
 def _profiles(gauge: Gauge, rotation: np.ndarray, t: np.ndarray, corners_x: np.ndarray, rng: np.random.Generator,
               glint_rng: np.random.Generator):
-    """(condition, (points, noise)) for every condition at one pose, rendered as each needs."""
+    """(condition, points, noise) for every condition at one pose, each rendered just before its estimate."""
     for condition, (noise, spikes, gap) in CONDITIONS.items():
         points = render_profile(gauge, rotation, t, noise_std=noise, rng=rng, spike_fraction=spikes,
                                 trace=trace_depth_fast)
-        yield condition, (with_gap(points, corners_x, gap, rng) if gap else points, noise)
+        yield condition, with_gap(points, corners_x, gap, rng) if gap else points, noise
     for condition, fraction in GLINT_CONDITIONS.items():
         points = render_profile(gauge, rotation, t, noise_std=BASE_NOISE, rng=glint_rng, trace=trace_depth_fast)
-        yield condition, (with_glints(points, fraction, glint_rng), BASE_NOISE)
+        yield condition, with_glints(points, fraction, glint_rng), BASE_NOISE
 
 
 def reason_kind(reason: str) -> str:
