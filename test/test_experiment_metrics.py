@@ -7,7 +7,7 @@ import pytest
 
 from profile_pose_ros.tools.experiment import (BEFORE_S, MAX_HOLE_S, METRICS, REACHED, RECORD_S, STEP_ATTEMPTS,
                                                at_paper_bandwidth, damping_from_overshoot, per_period, record_flaw,
-                                               recorded_step, step_metrics)
+                                               recorded_step, step_metrics, summarise)
 
 
 def second_order_step(zeta: float, size: float = 1e-3, rate: float = 83.333,
@@ -243,3 +243,20 @@ def test_string_parameters_stay_strings_on_the_command_line() -> None:
     args = ros_params({"a": "", "b": "true", "c": "1.5", "d": "it's", "e": True, "f": [1.0, 2.0], "g": "gauge"})
     values = dict(arg.split(":=", 1) for arg in args[1::2])
     assert [yaml.safe_load(values[k]) for k in "abcdefg"] == ["", "true", "1.5", "it's", True, [1.0, 2.0], "gauge"]
+
+
+def test_the_table_averages_the_repeats_that_have_a_metric_and_warns_of_none() -> None:
+    """A step that never settles has no settling time: over the repeats that have it, and nan (quietly: no
+    numpy warning in the main job's output) when none has."""
+    import warnings
+
+    def run(settling: float, mp: float) -> dict:
+        metrics = dict.fromkeys(METRICS, 1.0) | {"settling_time_s": settling, "Mp": mp}
+        return {"axis": "y", "size_mm": 1.0, "mode": "open", "estimate": metrics}
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        table = summarise([run(np.nan, 60.0), run(np.nan, 64.0)])[("y", 1.0, "open")]
+        assert np.isnan(table["settling_time_s"][0]) and np.isnan(table["settling_time_s"][1])
+        assert table["Mp"] == pytest.approx((62.0, 2.0))
+        assert summarise([run(np.nan, 60.0), run(0.5, 60.0)])[("y", 1.0, "open")]["settling_time_s"] == (0.5, 0.0)

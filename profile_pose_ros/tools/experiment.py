@@ -514,13 +514,20 @@ def noise_floor(experiment: Experiment, seconds: float = 3.0) -> dict:
 
 
 def summarise(runs: list[dict], source: str = "estimate") -> dict:
-    """Mean and std of each metric per (axis, size, mode)."""
+    """Mean and std of each metric per (axis, size, mode), over the repeats that have it."""
     table_ = {}
     for r in runs:
         key = (r["axis"], r["size_mm"], r["mode"])
         table_.setdefault(key, []).append(r[source])
-    return {key: {m: (float(np.nanmean([x[m] for x in v])), float(np.nanstd([x[m] for x in v])))
-                  for m in METRICS} for key, v in table_.items()}
+    return {key: {m: _mean_and_std([x[m] for x in v]) for m in METRICS} for key, v in table_.items()}
+
+
+def _mean_and_std(values: list[float]) -> tuple[float, float]:
+    """Of the finite values; (nan, nan) when none is (a step that never settles has no settling time: the
+    table prints nan, where numpy's nanmean would also print a warning into the main job's output)."""
+    finite = np.asarray(values, dtype=float)
+    finite = finite[~np.isnan(finite)]
+    return (float(finite.mean()), float(finite.std())) if finite.size else (float("nan"), float("nan"))
 
 
 def improvement(open_value: float, closed_value: float, higher_is_better: bool) -> float:
