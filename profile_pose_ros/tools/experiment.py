@@ -315,6 +315,10 @@ class Experiment:
     def close_loop(self, settle_s: float = 1.0) -> None:
         """start(), arm the bridge, and let the loop settle on the home reference."""
         self.start()
+        self.arm(settle_s)
+
+    def arm(self, settle_s: float = 1.0) -> None:
+        """Arm the bridge and let the loop settle where it is."""
         self.bridge(arm=True)
         self.wait(settle_s)
 
@@ -384,8 +388,7 @@ class Experiment:
             # a stalled loop disarmed it (the bridge's safety stop, until ~/start): armed again as close_loop
             # arms it, or every closed-loop step after would record an arm that no longer follows
             print(f"  warning: the bridge was disarmed ({self.why_disarmed()}); armed again", flush=True)
-            self.bridge(arm=True)
-            self.wait(1.0)
+            self.arm()
         self.wait(BEFORE_S)
         start = time.time()
         command(unit * size)
@@ -523,11 +526,11 @@ def summarise(runs: list[dict], source: str = "estimate") -> dict:
 
 
 def _mean_and_std(values: list[float]) -> tuple[float, float]:
-    """Of the finite values; (nan, nan) when none is (a step that never settles has no settling time: the
-    table prints nan, where numpy's nanmean would also print a warning into the main job's output)."""
-    finite = np.asarray(values, dtype=float)
-    finite = finite[~np.isnan(finite)]
-    return (float(finite.mean()), float(finite.std())) if finite.size else (float("nan"), float("nan"))
+    """np.nanmean's and np.nanstd's numbers; (nan, nan) when every value is NaN (a step that never settles has
+    no settling time: the table prints nan, where numpy would also print a warning into the main job's output)."""
+    present = np.asarray(values, dtype=float)
+    present = present[~np.isnan(present)]
+    return (float(present.mean()), float(present.std())) if present.size else (float("nan"), float("nan"))
 
 
 def improvement(open_value: float, closed_value: float, higher_is_better: bool) -> float:
