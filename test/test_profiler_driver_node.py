@@ -168,10 +168,11 @@ def test_reconnects_within_a_second_when_the_device_closes(rig_factory) -> None:
     # arming lost to a close (the two counts disagree), or the MCU too slow to acknowledge a command.
     retried = c.unacknowledged_pairings + rig.link.matcher.disagreements
     assert c.resyncs == 1 + retried, (c, rig.link.matcher.disagreements, rig.link.last_error)
-    arrivals = np.array([t for t, _ in rig.profiles])
-    clock = rig.link.trigger.clock
-    assert np.max(np.diff(arrivals)) < 1.0, (np.max(np.diff(arrivals)), c, clock.bounds_contradicted,
-                                             clock.bounds_refused, clock.resets)
+    # Timed by the device, from its drop to the driver's next connection: the gaps between profiles also
+    # hold the in-process trigger clock's pace, which a loaded runner slows (60 triggers at 100 Hz once
+    # took 3.1 s and left a 1.77 s gap with every reconnect fast).
+    delays = rig.cell.profiler.server.reconnect_delays
+    assert len(delays) >= rig.cell.profiler.closes - 1 and max(delays) < 1.0, (delays, c)
     rig.check_published_against_truth()
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 from typing import Callable
 
 
@@ -27,6 +28,10 @@ class PeerServer:
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self.connections = self.refused = 0
+        # the device's own view of a reconnect: how long it went without a peer after dropping one (its
+        # monotonic clock), whatever the host's stamps or the rate of the trigger clock say
+        self.reconnect_delays: list[float] = []
+        self._dropped_at: float | None = None
         self._thread = threading.Thread(target=self._accept_loop, name=f"{name}-accept", daemon=True)
 
     def start(self) -> "PeerServer":
@@ -53,6 +58,9 @@ class PeerServer:
                     continue
                 old, self._peer = self._peer, conn
                 self.connections += 1
+                if self._dropped_at is not None:
+                    self.reconnect_delays.append(time.monotonic() - self._dropped_at)
+                    self._dropped_at = None
             if old is not None:
                 _close(old)
             if self.on_connect is not None:
@@ -77,6 +85,7 @@ class PeerServer:
             if self._peer is None or (peer is not None and peer is not self._peer):
                 return
             old, self._peer = self._peer, None
+            self._dropped_at = time.monotonic()
         _close(old)
 
     def close(self) -> None:
