@@ -6,7 +6,9 @@ import pytest
 from profile_pose_ros.core import (EstimatorOptions, estimate_pose, pose_error, render_profile, sample_pose)
 from profile_pose_ros.core.estimation.estimator import is_wrong_minimum
 from profile_pose_ros.core.design.gauge_design import heightfield_gauge, random_gauge
+from profile_pose_ros.core.model.gauge import Gauge
 from profile_pose_ros.core.model.rotation import so3_log
+from profile_pose_ros.resources import config_path
 
 
 def test_noise_free_recovery_below_a_nanometre(gauge, rng):
@@ -81,6 +83,21 @@ def test_options_validate_and_override():
         EstimatorOptions(refine_weighting="magic")
     options = EstimatorOptions().with_changes(rdp_epsilon=1e-3, refine=False)
     assert options.corners.rdp_epsilon == 1e-3 and options.refine is False
+
+
+def test_equal_options_however_given_run_on_one_options_object(rng):
+    """An options object packs its kernel vector and the partial views' inputs (kept per gauge) once: made anew
+    on every call (no options, overrides, or equal options built per call) they cost more than the estimate."""
+    gauge = Gauge.from_yaml(config_path("gauge_paper_n5.yaml"))  # its own: the inputs it keeps are counted
+    kept_after_first = None
+    for _ in range(12):
+        points = render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng)
+        assert np.array_equal(estimate_pose(points, gauge).t, estimate_pose(points, gauge, EstimatorOptions()).t)
+        assert np.array_equal(estimate_pose(points, gauge, refine_model="corners").t,
+                              estimate_pose(points, gauge, EstimatorOptions(refine_model="corners")).t)
+        kept = set(gauge.__dict__["_partial_view_inputs"])
+        kept_after_first = kept_after_first or kept
+        assert kept == kept_after_first and len(kept) == 2  # the defaults' and the corner model's
 
 
 def test_unrefined_estimate_is_the_closed_form(gauge, rng):

@@ -9,6 +9,7 @@ every stage: the kernels in compiled/, compiled ahead, JIT-compiled or, for debu
 from __future__ import annotations
 
 import time
+from functools import lru_cache
 
 import numpy as np
 
@@ -31,10 +32,36 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
 
     Keyword overrides are any EstimatorOptions or CornerOptions field, e.g. refine=False.
     """
-    options = options or EstimatorOptions()
+    options = options or _DEFAULT_OPTIONS
     if overrides:
-        options = options.with_changes(**overrides)
-    return _estimate_in_one_call(points, gauge, options)
+        options = _cached(_options_with, options, tuple(sorted(overrides.items())))
+    return _estimate_in_one_call(points, gauge, _cached(_first_of_equal, options))
+
+
+# An options object packs its kernel vector and the partial views' inputs (kept per gauge) once. A call without
+# options, with overrides, or with options made anew but equal to earlier ones therefore runs on one shared
+# object: made on every call, they cost more than the shipped gauge's whole estimate (docs/performance.md,
+# "Calls without options").
+_DEFAULT_OPTIONS = EstimatorOptions()
+
+
+@lru_cache(maxsize=16)
+def _options_with(options: EstimatorOptions, overrides: tuple) -> EstimatorOptions:
+    return options.with_changes(**dict(overrides))
+
+
+@lru_cache(maxsize=16)
+def _first_of_equal(options: EstimatorOptions) -> EstimatorOptions:
+    return options
+
+
+def _cached(function, *args):
+    """function(*args) through its cache; uncached when an argument cannot be hashed (a value with_changes then
+    refuses, or options a caller built with one)."""
+    try:
+        return function(*args)
+    except TypeError:
+        return function.__wrapped__(*args)
 
 
 def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptions, error: float) -> str:
@@ -130,7 +157,7 @@ def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
     from ..model.render import render_profile
 
     start = time.perf_counter()
-    options = options or EstimatorOptions()
+    options = _cached(_first_of_equal, options or _DEFAULT_OPTIONS)  # the object estimate_pose will run on
     rotation, translation = sample_pose(gauge, np.random.default_rng(0))
     profile = render_profile(gauge, rotation, translation)
     _estimate_in_one_call(profile, gauge, options)  # also makes the partial views' gauges

@@ -45,7 +45,7 @@ def partial_view_inputs(gauge: Gauge, options: EstimatorOptions) -> tuple:
     kept = gauge.__dict__.setdefault("_partial_view_inputs", {})  # beside partial_tables' (Gauge._with_faces)
     entry = kept.get(id(options))  # each entry holds its options: an id in the dict is not reused
     if entry is None:
-        if len(kept) >= _KEPT_OPTIONS:  # options made per call (estimate_pose's overrides) are not kept for ever
+        if len(kept) >= _KEPT_OPTIONS:  # a process uses a few options objects; more are not kept for ever
             kept.clear()
         partial = options.for_a_partial_view
         vectors = np.stack([_unbounded(partial).kernel_vector, _without_search(partial).kernel_vector])
