@@ -309,29 +309,49 @@ def test_two_faces_beyond_the_view_leave_the_run_of_faces_seen(rng, refine_model
         assert position < 1e-3 and rotation_error < 5e-3
 
 
-def test_the_partial_tables_hold_the_ridges_of_every_reduced_gauge(gauge):
-    """What the compiled partial view reads for a gauge without a face, or with a run of faces in view, is that
-    Gauge's own ridges; NaN where the faces either side never meet (the paper gauge's faces 2 and 4)."""
-    from profile_pose_ros.core.compiled.codes import MAX_HIDDEN_IN_A_GAP
+@pytest.mark.parametrize("ridges", [5, 7, 10])
+def test_the_partial_tables_hold_the_ridges_of_every_reduced_gauge(gauge, ridges):
+    """What the compiled partial view reads for a gauge without one or two faces, or with a run of faces in
+    view, is that Gauge's own ridges to the bit (the tables solve the virtual ridges without making the gauges);
+    NaN where the faces either side never meet (the paper gauge's faces 2 and 4)."""
+    from profile_pose_ros.core.compiled.codes import MAX_HIDDEN_IN_A_GAP, MIN_RIDGES
     from profile_pose_ros.core.estimation.hidden_face import partial_tables
 
+    if ridges != gauge.n_ridges:
+        gauge = random_gauge(ridges, np.random.default_rng(ridges))
     tables = partial_tables(gauge)
     hidden, in_view = tables[:MAX_HIDDEN_IN_A_GAP], tables[MAX_HIDDEN_IN_A_GAP:]
     n = gauge.n_ridges
     missing = []
-    for face in range(1, n):
-        try:
-            without = gauge.without_face(face)
-        except GaugeError:
-            missing.append(face)
-            assert np.isnan(hidden[0, face]).all()
-            continue
-        assert np.array_equal(hidden[0, face, :n - 1], np.column_stack([without.q, without.u, without.w]))
-    assert missing == [3]
-    for first, last in ((0, n - 1), (1, n)):
-        seen = gauge.faces_in_view(first, last)
-        assert np.array_equal(in_view[first, last, :last - first], np.column_stack([seen.q, seen.u, seen.w]))
+    for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
+        for face in range(1, n - count + 1) if n - count >= MIN_RIDGES else ():
+            try:
+                without = gauge.without_face(face, count)
+            except GaugeError:
+                missing.append((face, count))
+                assert np.isnan(hidden[count - 1, face]).all()
+                continue
+            assert np.array_equal(hidden[count - 1, face, :n - count], np.column_stack([without.q, without.u,
+                                                                                       without.w]))
+    assert missing == ([(3, 1)] if ridges == 5 else [])
+    for shown in range(MIN_RIDGES, n):
+        for first in range(n - shown + 1):
+            seen = gauge.faces_in_view(first, first + shown)
+            assert np.array_equal(in_view[first, first + shown, :shown], np.column_stack([seen.q, seen.u, seen.w]))
     assert partial_tables(gauge) is tables and not tables.flags.writeable  # made once per gauge, shared
+
+
+def test_a_new_gauges_first_profile_makes_no_reduced_gauge_and_warm_up_makes_them_all(rng):
+    """A gauge's first profile needs the partial views' ridge tables, not their Gauge objects (a dozen
+    validations, milliseconds: an evaluation over many gauges saw every first profile late); a node's warm_up
+    makes them all, so that no partial view's first answer waits for one."""
+    from profile_pose_ros.core.estimation.estimator import warm_up
+
+    gauge = random_gauge(7, rng)
+    assert estimate_pose(render_profile(gauge, *sample_pose(gauge, rng), noise_std=5e-6, rng=rng), gauge).ok
+    assert "_partial_tables" in gauge.__dict__ and "_with_faces_cache" not in gauge.__dict__
+    warm_up(gauge)
+    assert len(gauge.__dict__["_with_faces_cache"]) == 6 + 5 + (4 + 3 + 2)  # one, two faces hidden; runs in view
 
 
 def test_a_gap_that_hides_no_face_is_not_explained_by_one(gauge, rng):

@@ -17,7 +17,7 @@ from ..compiled import codes
 from ..compiled.loader import kernels
 from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
-from .hidden_face import partial_view_estimate, partial_view_inputs
+from .hidden_face import make_partial_gauges, partial_view_estimate, partial_view_inputs
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, reason_ambiguous, reason_inconsistent,
                      reason_outside, reason_poorly_determined, reason_reprojection)
 from .residuals import REASON_CF_DEGENERATE, PoseSolution, corner_residuals, reason_cf_rank, solution_cost
@@ -160,8 +160,9 @@ def warm_up(gauge: Gauge, options: EstimatorOptions | None = None) -> float:
     options = _cached(_first_of_equal, options or _DEFAULT_OPTIONS)  # the object estimate_pose will run on
     rotation, translation = sample_pose(gauge, np.random.default_rng(0))
     profile = render_profile(gauge, rotation, translation)
-    _estimate_in_one_call(profile, gauge, options)  # also makes the partial views' gauges
+    _estimate_in_one_call(profile, gauge, options)  # also makes the partial views' ridge tables
     _estimate_in_one_call(np.full((10, 2), np.nan), gauge, options)  # a failure path too
+    make_partial_gauges(gauge)
     return time.perf_counter() - start
 
 

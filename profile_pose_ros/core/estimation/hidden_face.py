@@ -25,7 +25,7 @@ import numpy as np
 
 from ..compiled import codes
 from ..compiled.codes import MAX_HIDDEN_IN_A_GAP, MIN_RIDGES
-from ..model.gauge import Gauge, GaugeError
+from ..model.gauge import Gauge, GaugeError, ridge_lines
 from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
 
 # (outcome, outputs, gauge seen, options, timings) -> the checked estimate: estimator.py's, which owns the kernels'
@@ -107,28 +107,41 @@ def partial_tables(gauge: Gauge) -> np.ndarray:
     """The ridges [q, u, w] of every gauge a partial view can ask for, as the compiled estimate takes them (read
     only): [count - 1, face, :n - count] those of gauge.without_face(face, count) (NaN where its faces never meet),
     then from row MAX_HIDDEN_IN_A_GAP [MAX_HIDDEN_IN_A_GAP + first, last, :last - first] those of
-    gauge.faces_in_view(first, last). Made once per gauge, before the first profile (warm_up): each reduced gauge
-    costs a few hundred microseconds to build and validate."""
+    gauge.faces_in_view(first, last). Made once per gauge, on its first profile, from the gauge's own ridges and
+    the virtual ones in one solve (the same numbers those gauges' validation computes, without making them: a
+    gauge's first profile would otherwise wait milliseconds for a dozen of them)."""
     tables = gauge.__dict__.get("_partial_tables")  # kept beside the gauge's own caches (Gauge._with_faces)
     if tables is None:
         n = gauge.n_ridges
+        ridges = np.column_stack([gauge.q, gauge.u, gauge.w])
         tables = np.full((MAX_HIDDEN_IN_A_GAP + n + 1, n + 1, n, 5), np.nan)
-        for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
-            for face in range(1, n - count + 1) if n - count >= MIN_RIDGES else ():
-                without = _gauge_without(gauge, face, count)
-                if without is not None:
-                    tables[count - 1, face, :n - count] = _ridges(without)
+        hidden = [(count, face) for count in range(1, MAX_HIDDEN_IN_A_GAP + 1) if n - count >= MIN_RIDGES
+                  for face in range(1, n - count + 1)]
+        left, right = (np.array([face - 1 for _, face in hidden], dtype=int),
+                       np.array([face + count for count, face in hidden], dtype=int))
+        q, u, w, crossing = ridge_lines(gauge.normals, gauge.offsets, left, right)
+        virtual = np.column_stack([q, u, w])
+        for k, (count, face) in enumerate(hidden):
+            if crossing[k]:  # faces that never meet leave no gauge: its row stays NaN
+                tables[count - 1, face, :n - count] = np.vstack([ridges[:face - 1], virtual[k], ridges[face + count:]])
         for shown in range(MIN_RIDGES, n):
             for first in range(n - shown + 1):
-                tables[MAX_HIDDEN_IN_A_GAP + first, first + shown, :shown] = _ridges(gauge.faces_in_view(first,
-                                                                                                   first + shown))
+                tables[MAX_HIDDEN_IN_A_GAP + first, first + shown, :shown] = ridges[first:first + shown]
         tables.setflags(write=False)
         gauge.__dict__["_partial_tables"] = tables
     return tables
 
 
-def _ridges(gauge: Gauge) -> np.ndarray:
-    return np.column_stack([gauge.q, gauge.u, gauge.w])
+def make_partial_gauges(gauge: Gauge) -> None:
+    """Every gauge a partial view's answer names (Gauge.without_face, Gauge.faces_in_view), made before the first
+    profile (warm_up): the first answer of each would otherwise wait for its validation."""
+    n = gauge.n_ridges
+    for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
+        for face in range(1, n - count + 1) if n - count >= MIN_RIDGES else ():
+            _gauge_without(gauge, face, count)
+    for shown in range(MIN_RIDGES, n):
+        for first in range(n - shown + 1):
+            gauge.faces_in_view(first, first + shown)
 
 
 def _gauge_without(gauge: Gauge, face: int, count: int) -> Gauge | None:

@@ -259,17 +259,29 @@ def _check_faces(normals: np.ndarray, source: str) -> None:
 
 def _ridges(normals: np.ndarray, offsets: np.ndarray, source: str) -> tuple[np.ndarray, ...]:
     """Paper eq. (2): ridge i = faces i and i+1, point q_i in y = 0, direction [u_i, 1, w_i]."""
-    n = len(normals) - 1
-    q = np.zeros((n, 3))
-    directions = np.cross(normals[:-1], normals[1:])
-    for i in range(n):
-        a = np.array([[normals[i, 0], normals[i, 2]], [normals[i + 1, 0], normals[i + 1, 2]]])
-        if abs(np.linalg.det(a)) < 1e-12:
-            raise GaugeError(f"gauge {source}: ridge {i} (faces {i}/{i + 1}) does not cross y = 0")
-        q[i, [0, 2]] = np.linalg.solve(a, offsets[i:i + 2])
-    u = directions[:, 0] / directions[:, 1]
-    w = directions[:, 2] / directions[:, 1]
+    faces = np.arange(len(normals))
+    q, u, w, crossing = ridge_lines(normals, offsets, faces[:-1], faces[1:])
+    for i in np.flatnonzero(~crossing)[:1]:
+        raise GaugeError(f"gauge {source}: ridge {i} (faces {i}/{i + 1}) does not cross y = 0")
     return q, u, w
+
+
+def ridge_lines(normals: np.ndarray, offsets: np.ndarray, first: np.ndarray,
+                second: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The lines where faces first[k] and second[k] meet, as eq. (2) writes a ridge: (q, u, w, crossing), NaN
+    and crossing False where the two do not cross y = 0 (parallel in x-z). Every pair in one solve: the virtual
+    ridges of a partial view's gauges (estimation/hidden_face.py) are made on a gauge's first profile."""
+    systems = np.stack([normals[first][:, [0, 2]], normals[second][:, [0, 2]]], axis=1)  # rows: the two faces' x, z
+    crossing = np.abs(np.linalg.det(systems)) >= 1e-12
+    q = np.full((len(first), 3), np.nan)
+    q[crossing, 1] = 0.0
+    rhs = np.column_stack([offsets[first], offsets[second]])[crossing, :, None]
+    q[np.ix_(crossing, [0, 2])] = np.linalg.solve(systems[crossing], rhs)[..., 0]
+    directions = np.cross(normals[first], normals[second])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(crossing, directions[:, 0] / directions[:, 1], np.nan)
+        w = np.where(crossing, directions[:, 2] / directions[:, 1], np.nan)
+    return q, u, w, crossing
 
 
 def _check_ridges_in_footprint(gauge: Gauge) -> None:
