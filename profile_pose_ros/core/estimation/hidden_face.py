@@ -17,7 +17,7 @@ the hypothesis is refused.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Callable
 
@@ -113,23 +113,44 @@ def partial_tables(gauge: Gauge) -> np.ndarray:
     tables = gauge.__dict__.get("_partial_tables")  # kept beside the gauge's own caches (Gauge._with_faces)
     if tables is None:
         n = gauge.n_ridges
-        ridges = np.column_stack([gauge.q, gauge.u, gauge.w])
-        tables = np.full((MAX_HIDDEN_IN_A_GAP + n + 1, n + 1, n, 5), np.nan)
-        hidden = [(count, face) for count in range(1, MAX_HIDDEN_IN_A_GAP + 1) if n - count >= MIN_RIDGES
-                  for face in range(1, n - count + 1)]
-        left, right = (np.array([face - 1 for _, face in hidden], dtype=int),
-                       np.array([face + count for count, face in hidden], dtype=int))
-        q, u, w, crossing = ridge_lines(gauge.normals, gauge.offsets, left, right)
-        virtual = np.column_stack([q, u, w])
-        for k, (count, face) in enumerate(hidden):
-            if crossing[k]:  # faces that never meet leave no gauge: its row stays NaN
-                tables[count - 1, face, :n - count] = np.vstack([ridges[:face - 1], virtual[k], ridges[face + count:]])
-        for shown in range(MIN_RIDGES, n):
-            for first in range(n - shown + 1):
-                tables[MAX_HIDDEN_IN_A_GAP + first, first + shown, :shown] = ridges[first:first + shown]
+        layout = _table_layout(n)
+        q, u, w, crossing = ridge_lines(gauge.normals, gauge.offsets, layout.left, layout.right)
+        # the gauge's ridges, the virtual ones, then a NaN row: each table entry is one of them
+        rows = np.vstack([np.column_stack([gauge.q, gauge.u, gauge.w]), np.column_stack([q, u, w]),
+                          np.full((1, 5), np.nan)])
+        tables = rows[layout.source]
+        never_meet = layout.hypotheses[~crossing]  # faces that never meet leave no gauge: all NaN
+        tables[never_meet[:, 0] - 1, never_meet[:, 1]] = np.nan
         tables.setflags(write=False)
         gauge.__dict__["_partial_tables"] = tables
     return tables
+
+
+@dataclass(frozen=True)
+class _TableLayout:
+    """Where each entry of an n-ridge gauge's partial tables comes from: source indexes its ridges (0..n-1), the
+    virtual ridges between faces left[k] and right[k] of hypothesis k (n + k), or a NaN row (the last)."""
+    source: np.ndarray  # (MAX_HIDDEN_IN_A_GAP + n + 1, n + 1, n)
+    hypotheses: np.ndarray  # (k, 2): count, face of gauge.without_face(face, count)
+    left: np.ndarray
+    right: np.ndarray
+
+
+@lru_cache(maxsize=16)
+def _table_layout(n: int) -> _TableLayout:
+    hypotheses = np.array([(count, face) for count in range(1, MAX_HIDDEN_IN_A_GAP + 1) if n - count >= MIN_RIDGES
+                           for face in range(1, n - count + 1)], dtype=int).reshape(-1, 2)
+    nan_row = n + len(hypotheses)
+    source = np.full((MAX_HIDDEN_IN_A_GAP + n + 1, n + 1, n), nan_row)
+    for k, (count, face) in enumerate(hypotheses):  # ridges before the gap, the virtual one, those after
+        source[count - 1, face, :n - count] = [*range(face - 1), n + k, *range(face + count, n)]
+    for shown in range(MIN_RIDGES, n):
+        for first in range(n - shown + 1):
+            source[MAX_HIDDEN_IN_A_GAP + first, first + shown, :shown] = range(first, first + shown)
+    left, right = hypotheses[:, 1] - 1, hypotheses[:, 1] + hypotheses[:, 0]
+    for shared in (source, hypotheses, left, right):  # one layout serves every gauge of n ridges
+        shared.setflags(write=False)
+    return _TableLayout(source, hypotheses, left, right)
 
 
 def make_partial_gauges(gauge: Gauge) -> None:

@@ -271,16 +271,19 @@ def ridge_lines(normals: np.ndarray, offsets: np.ndarray, first: np.ndarray,
     """The lines where faces first[k] and second[k] meet, as eq. (2) writes a ridge: (q, u, w, crossing), NaN
     and crossing False where the two do not cross y = 0 (parallel in x-z). Every pair in one solve: the virtual
     ridges of a partial view's gauges (estimation/hidden_face.py) are made on a gauge's first profile."""
-    systems = np.stack([normals[first][:, [0, 2]], normals[second][:, [0, 2]]], axis=1)  # rows: the two faces' x, z
+    a, b = normals[first], normals[second]
+    systems = np.empty((len(a), 2, 2))  # rows: the two faces' x, z
+    systems[:, 0, 0], systems[:, 0, 1], systems[:, 1, 0], systems[:, 1, 1] = a[:, 0], a[:, 2], b[:, 0], b[:, 2]
     crossing = np.abs(np.linalg.det(systems)) >= 1e-12
-    q = np.full((len(first), 3), np.nan)
-    q[crossing, 1] = 0.0
-    rhs = np.column_stack([offsets[first], offsets[second]])[crossing, :, None]
-    q[np.ix_(crossing, [0, 2])] = np.linalg.solve(systems[crossing], rhs)[..., 0]
-    directions = np.cross(normals[first], normals[second])
+    rhs = np.stack([offsets[first], offsets[second]], axis=1)[..., None]
+    q = np.zeros((len(a), 3))
+    q[crossing, ::2] = np.linalg.solve(systems[crossing], rhs[crossing])[..., 0]
+    # the cross product a x b as np.cross forms it, without its axis handling (most of its time on a few rows)
+    dx, dy, dz = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2], \
+        a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(crossing, directions[:, 0] / directions[:, 1], np.nan)
-        w = np.where(crossing, directions[:, 2] / directions[:, 1], np.nan)
+        u, w = dx / dy, dz / dy
+    q[~crossing], u[~crossing], w[~crossing] = np.nan, np.nan, np.nan
     return q, u, w, crossing
 
 
