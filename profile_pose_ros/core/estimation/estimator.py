@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from functools import lru_cache
+from typing import Callable
 
 import numpy as np
 
@@ -119,27 +120,27 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     timings = {"total": time.perf_counter() - start}
     outcome, m, which = result[:7], result[7], result[8:]
     if which[0] == codes.PARTIAL_NONE:
-        return _described(outcome, outputs, gauge, options, timings)
+        return _described(outcome, outputs, lambda: gauge, options, timings)
     outputs = (outputs[0][:m], *outputs[1:6], outputs[6][:m], outputs[7][:m], outputs[8])
     return partial_view_estimate(outcome, outputs, which, where, gauge, options, _described, timings)
 
 
-def _described(outcome: tuple, outputs: tuple, gauge: Gauge, options: EstimatorOptions,
+def _described(outcome: tuple, outputs: tuple, seen: Callable[[], Gauge], options: EstimatorOptions,
                timings: dict) -> PoseEstimate:
     """The PoseEstimate of a compiled estimate's outcome (its returned tuple) and outputs (the arrays it filled,
-    in _estimate_in_one_call's order, this call's own) for `gauge` (the one its corners saw): the whole gauge's,
-    or a partial view's (hidden_face.py). A pose whose position is too poorly determined to trust its covariance
+    in _estimate_in_one_call's order, this call's own) for the gauge its corners saw, which `seen` makes only
+    for a refusal's words: the whole gauge, or a partial view's (hidden_face.py). A pose whose position is too poorly determined to trust its covariance
     is refused here, its numbers blanked in place and the corner results kept for diagnosis (as `rejected`
     makes it, without copying the estimate: most profiles of a noisy or near-degenerate view end here)."""
     status, iterations, fit_rms, error, cf_error, sigma, search_starts = outcome
     corners, rot, t, cov, cf_rot, cf_t, cf_res, _, info = outputs
     if status in (codes.TOO_FEW_POINTS, codes.X_NOT_INCREASING, codes.STEEP_SEGMENT, codes.WRONG_CORNER_COUNT,
                   codes.CORNER_NOT_BETWEEN, codes.CORNERS_NOT_INCREASING):
-        return PoseEstimate(False, _reason(status, info, gauge, options, error), timings=timings)
+        return PoseEstimate(False, _reason(status, info, seen(), options, error), timings=timings)
     if status in (codes.CF_RANK, codes.CF_DEGENERATE, codes.NO_START):
-        return PoseEstimate(False, _reason(status, info, gauge, options, error), corners=corners, timings=timings)
+        return PoseEstimate(False, _reason(status, info, seen(), options, error), corners=corners, timings=timings)
     ok = status == codes.OK
-    reason = "" if ok else _reason(status, info, gauge, options, error)
+    reason = "" if ok else _reason(status, info, seen(), options, error)
     if ok and sigma > options.max_position_sigma:
         ok, reason = False, reason_poorly_determined(sigma, options)
         for published in (rot, t, cov):

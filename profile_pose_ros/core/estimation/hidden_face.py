@@ -29,8 +29,9 @@ from ..model.gauge import Gauge, GaugeError, ridge_lines
 from .result import EstimatorOptions, PoseEstimate, reason_outside, rejected
 
 # (outcome, outputs, gauge seen, options, timings) -> the checked estimate: estimator.py's, which owns the kernels'
-# outcomes
-Describe = Callable[[tuple, tuple, Gauge, EstimatorOptions, dict], PoseEstimate]
+# outcomes. The gauge seen comes as a function that makes it: only a refusal's words need it, and making a reduced
+# gauge (validating it) costs about as much as a profile's estimate
+Describe = Callable[[tuple, tuple, Callable[[], Gauge], EstimatorOptions, dict], PoseEstimate]
 
 _NO_TABLES = np.empty((0, 1, 1, 5))  # tries no partial view
 _NO_TABLES.setflags(write=False)
@@ -67,7 +68,7 @@ def partial_view_estimate(outcome: tuple, outputs: tuple, which: tuple, where: n
         return PoseEstimate(False, f"corner detection: found {a} corners; {b} placements of the faces in view "
                                    f"explain the profile (ambiguous)", timings=timings)
     if kind == codes.PARTIAL_IN_VIEW:
-        found = describe(outcome, outputs, gauge.faces_in_view(a, b), _without_search(partial), timings)
+        found = describe(outcome, outputs, lambda: gauge.faces_in_view(a, b), _without_search(partial), timings)
         one_hidden = {(1, n): 0, (0, n - 1): n}.get((a, b))
         found.hidden_face, found.faces_hidden, found.faces_in_view = (one_hidden, 0 if one_hidden is None else 1,
                                                                       (a, b))  # found is this call's own
@@ -84,7 +85,7 @@ def _hidden_in_gap(outcome: tuple, outputs: tuple, gauge: Gauge, relaxed: Estima
         return PoseEstimate(False, f"corner detection: {_gap(faces, where)}, but faces {face - 1} and {face + count} "
                                    f"are parallel: without a corner between them the faces seen do not determine "
                                    f"the pose", timings=timings)
-    found = describe(outcome, outputs, _gauge_without(gauge, face, count), relaxed, timings)
+    found = describe(outcome, outputs, lambda: gauge.without_face(face, count), relaxed, timings)
     if not found.ok:
         return replace(found, reason=f"{found.reason} (with {_gap(faces, where)})")
     if verdict == codes.VERDICT_OUTSIDE:
