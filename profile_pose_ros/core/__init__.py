@@ -13,7 +13,7 @@ Rooms, each importing only those listed before it:
     from profile_pose_ros.core import Gauge, render_profile, estimate_pose
 """
 from .estimation.corners import CornerOptions, CornerResult
-from .estimation.estimator import estimate_pose, pose_error
+from .estimation.estimator import estimate_pose, pose_error, warm_up
 from .estimation.result import EstimatorOptions, PoseEstimate
 from .estimation.residuals import PoseSolution
 from .estimation.stages import detect_corners
@@ -24,5 +24,5 @@ from .model.render import DEFAULT_PROFILER, ProfilerModel, render_profile, true_
 __all__ = [
     "CornerOptions", "CornerResult", "DEFAULT_PROFILER", "EstimatorOptions", "Gauge", "GaugeError",
     "PoseEstimate", "PoseRange", "PoseSolution", "ProfilerModel", "corners_visible",
-    "detect_corners", "estimate_pose", "pose_error", "render_profile", "sample_pose", "true_corners",
+    "detect_corners", "estimate_pose", "pose_error", "render_profile", "sample_pose", "true_corners", "warm_up",
 ]
