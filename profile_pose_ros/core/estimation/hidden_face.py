@@ -135,35 +135,34 @@ class _TableLayout:
     hypotheses: np.ndarray  # (k, 2): count, face of gauge.without_face(face, count)
     left: np.ndarray
     right: np.ndarray
+    runs: tuple[tuple[int, int], ...]  # first, last of gauge.faces_in_view(first, last)
 
 
 @lru_cache(maxsize=16)
 def _table_layout(n: int) -> _TableLayout:
     hypotheses = np.array([(count, face) for count in range(1, MAX_HIDDEN_IN_A_GAP + 1) if n - count >= MIN_RIDGES
                            for face in range(1, n - count + 1)], dtype=int).reshape(-1, 2)
+    runs = tuple((first, first + shown) for shown in range(MIN_RIDGES, n) for first in range(n - shown + 1))
     nan_row = n + len(hypotheses)
     source = np.full((MAX_HIDDEN_IN_A_GAP + n + 1, n + 1, n), nan_row)
     for k, (count, face) in enumerate(hypotheses):  # ridges before the gap, the virtual one, those after
         source[count - 1, face, :n - count] = [*range(face - 1), n + k, *range(face + count, n)]
-    for shown in range(MIN_RIDGES, n):
-        for first in range(n - shown + 1):
-            source[MAX_HIDDEN_IN_A_GAP + first, first + shown, :shown] = range(first, first + shown)
+    for first, last in runs:
+        source[MAX_HIDDEN_IN_A_GAP + first, last, :last - first] = range(first, last)
     left, right = hypotheses[:, 1] - 1, hypotheses[:, 1] + hypotheses[:, 0]
     for shared in (source, hypotheses, left, right):  # one layout serves every gauge of n ridges
         shared.setflags(write=False)
-    return _TableLayout(source, hypotheses, left, right)
+    return _TableLayout(source, hypotheses, left, right, runs)
 
 
 def make_partial_gauges(gauge: Gauge) -> None:
     """Every gauge a partial view's answer names (Gauge.without_face, Gauge.faces_in_view), made before the first
     profile (warm_up): the first answer of each would otherwise wait for its validation."""
-    n = gauge.n_ridges
-    for count in range(1, MAX_HIDDEN_IN_A_GAP + 1):
-        for face in range(1, n - count + 1) if n - count >= MIN_RIDGES else ():
-            _gauge_without(gauge, face, count)
-    for shown in range(MIN_RIDGES, n):
-        for first in range(n - shown + 1):
-            gauge.faces_in_view(first, first + shown)
+    layout = _table_layout(gauge.n_ridges)
+    for count, face in layout.hypotheses:
+        _gauge_without(gauge, int(face), int(count))
+    for first, last in layout.runs:
+        gauge.faces_in_view(first, last)
 
 
 def _gauge_without(gauge: Gauge, face: int, count: int) -> Gauge | None:
