@@ -42,7 +42,7 @@ def estimate_pose(points: np.ndarray, gauge: Gauge, options: EstimatorOptions | 
 # An options object packs its kernel vector and the partial views' inputs (kept per gauge) once. A call without
 # options, with overrides, or with options made anew but equal to earlier ones therefore runs on one shared
 # object: made on every call, they cost more than the shipped gauge's whole estimate (docs/performance.md,
-# "Calls without options").
+# "Called plainly").
 _DEFAULT_OPTIONS = EstimatorOptions()
 
 
@@ -129,9 +129,10 @@ def _described(outcome: tuple, outputs: tuple, seen: Callable[[], Gauge], option
                timings: dict) -> PoseEstimate:
     """The PoseEstimate of a compiled estimate's outcome (its returned tuple) and outputs (the arrays it filled,
     in _estimate_in_one_call's order, this call's own) for the gauge its corners saw, which `seen` makes only
-    for a refusal's words: the whole gauge, or a partial view's (hidden_face.py). A pose whose position is too poorly determined to trust its covariance
-    is refused here, its numbers blanked in place and the corner results kept for diagnosis (as `rejected`
-    makes it, without copying the estimate: most profiles of a noisy or near-degenerate view end here)."""
+    for a refusal's words: the whole gauge, or a partial view's (hidden_face.py). A pose whose position is too
+    poorly determined to trust its covariance is refused here, its numbers blanked in place and the corner
+    results kept for diagnosis (as `rejected` makes it, without copying the estimate: most profiles of a noisy
+    or near-degenerate view end here)."""
     status, iterations, fit_rms, error, cf_error, sigma, search_starts = outcome
     corners, rot, t, cov, cf_rot, cf_t, cf_res, _, info = outputs
     if status in (codes.TOO_FEW_POINTS, codes.X_NOT_INCREASING, codes.STEEP_SEGMENT, codes.WRONG_CORNER_COUNT,
