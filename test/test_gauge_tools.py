@@ -8,8 +8,9 @@ import trimesh
 import yaml
 
 from conftest import PAPER_GAUGE
-from profile_pose_ros.core import Gauge
-from profile_pose_ros.core.design.gauge_check import RequiredMotion, check_rules, motion_poses, range_of_motion
+from profile_pose_ros.core import EstimatorOptions, Gauge, estimate_pose, render_profile, sample_pose
+from profile_pose_ros.core.design.gauge_check import (RequiredMotion, check_rules, motion_poses, range_of_motion,
+                                                      weak_corner_warning, weakest_profile_bends_deg)
 from profile_pose_ros.core.design.gauge_design import RandomGaugeRules, heightfield_gauge
 from profile_pose_ros.core.model.gauge_mesh import gauge_mesh
 from profile_pose_ros.core.design.gauge_search import INVALID, DesignSpace
@@ -36,12 +37,29 @@ def test_hand_made_paper_like_gauge_keeps_every_rule():
     (made(slopes=(0.6, -0.57, 1.2, -0.6, 0.63, -0.57)), "steepest face from horizontal"),
     (made(ridge_x=(-0.038, -0.019, 0.0, 0.003, 0.038), angles_deg=(-20, -10, 0, 1, 20)), "narrowest face (either end)"),
     (made(slopes=(0.6, -0.57, 0.63, 0.55, 0.63, -0.57)), "smallest bend between adjacent faces"),
+    (made(slopes=(0.6, -0.57, 0.63, 0.60, -0.6, 0.6)), "smallest bend in the profile (poses drawn from the pose range)"),
     (made(angles_deg=(-4, -2, 0, 2, 4)), "ridge directions >= 3 deg apart"),
     (made(slopes=(0.8, -0.3, 0.8, -0.3, 0.8, -0.3)), "relief (highest - lowest top point)"),
     (made(width=0.170, ridge_x=(-0.05, -0.025, 0.0, 0.025, 0.05)), "width against the profiler's near field of view"),
 ])
 def test_each_rule_fails_on_a_gauge_that_breaks_it(gauge, rule):
     assert rule in failing(gauge)
+
+
+def test_a_corner_the_profile_hardly_shows_is_named_and_its_profiles_are_refused():
+    """Faces 2 and 3 bend by about 1 deg in every profile: corner detection merges them (min_corner_angle 5 deg)
+    and refuses the profile, never a pose; the check names that corner and no other, and the node's start-up
+    warning says what to expect."""
+    weak = made(slopes=(0.6, -0.57, 0.63, 0.60, -0.6, 0.6))
+    bends = weakest_profile_bends_deg(weak)
+    assert np.flatnonzero(bends < 10.0).tolist() == [2] and bends[2] < 2.0
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        estimate = estimate_pose(render_profile(weak, *sample_pose(weak, rng), noise_std=5e-6, rng=rng), weak)
+        assert not estimate.ok and estimate.reason.startswith("corner detection: found 4 corners"), estimate.reason
+    warning = weak_corner_warning(weak, EstimatorOptions().corners.min_corner_angle)
+    assert "faces 2/3 as little as" in warning and "faces 1/2" not in warning
+    assert weak_corner_warning(made(), EstimatorOptions().corners.min_corner_angle) is None
 
 
 def test_corners_unseen_at_the_nominal_pose_is_a_failure():

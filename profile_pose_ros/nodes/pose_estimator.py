@@ -23,6 +23,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ..core.compiled import loader
+from ..core.design.gauge_check import weak_corner_warning
 from ..core.estimation.estimator import estimate_pose, warm_up
 from ..core.estimation.result import WEIGHTINGS, EstimatorOptions
 from ..core.model.gauge import Gauge, GaugeError
@@ -177,6 +178,9 @@ class PoseEstimatorNode(Node):
             self.get_logger().info("compiling the estimator for this machine before the first profile "
                                    "(once per installed version, about a minute)")
         compile_s = warm_up(self.gauge, self.options)  # compile (or load) before the first profile
+        weak_corners = weak_corner_warning(self.gauge, self.options.corners.min_corner_angle)
+        if weak_corners is not None:
+            self.get_logger().warning(weak_corners)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         # rclpy attaches default QoS-event handlers to every endpoint, and its executor walks all of them on

@@ -38,6 +38,45 @@ def adjacent_face_angles_deg(gauge: Gauge) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
+def profile_bends_deg(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """The bend at each corner as the profile shows it at a pose (F in G): the angle between the lines the two
+    faces cut in the laser plane, which is what corner detection's min_corner_angle compares. It differs from
+    the faces' own angle (adjacent_face_angles_deg) by what the laser plane does not see of it."""
+    along_x, along_z = gauge.normals @ rotation[:, 0], gauge.normals @ rotation[:, 2]  # face k: a x + b z = c
+    slopes = np.degrees(np.arctan(-along_x / along_z))  # each line's direction in the profile's x-z
+    return np.abs(np.diff(slopes))
+
+
+def weakest_profile_bends_deg(gauge: Gauge, poses: int = 20, seed: int = 0) -> np.ndarray:
+    """Each corner's smallest bend in the profile at the nominal pose and over poses drawn from the pose range
+    (model.poses; none where no pose shows every corner, which check_rules reports on its own)."""
+    from ..model.poses import sample_pose
+
+    rng = np.random.default_rng(seed)
+    bends = [profile_bends_deg(gauge, *nominal_pose(gauge))]
+    try:
+        bends += [profile_bends_deg(gauge, *sample_pose(gauge, rng, max_tries=200)) for _ in range(poses)]
+    except RuntimeError:
+        pass
+    return np.min(bends, axis=0)
+
+
+def weak_corner_warning(gauge: Gauge, min_corner_angle: float) -> str | None:
+    """Words for a commissioning engineer when some corner bends, in the profiles of the pose range, by less than
+    twice what corner detection needs (min_corner_angle, rad): under it detection merges the two faces and
+    refuses the profile ("found n - 1 corners"), and near it often does. None when every corner bends enough."""
+    bends = weakest_profile_bends_deg(gauge)
+    needed = np.degrees(min_corner_angle)
+    weak = np.flatnonzero(bends < 2 * needed)
+    if len(weak) == 0:
+        return None
+    corners = ", ".join(f"faces {k}/{k + 1} as little as {bends[k]:.1f} deg" for k in weak)
+    return (f"gauge '{gauge.name}': corners that bend little in the profile ({corners}; corner detection merges "
+            f"faces bending by less than min_corner_angle, {needed:.1f} deg): expect profiles refused with "
+            f"'corner detection: found {gauge.n_ridges - 1} corners' where they do. A gauge's corners should bend by "
+            f"10 deg or more (profile_pose gauge check)")
+
+
 def _at_most(rule: str, value: float, limit: float, unit: str, slack: float = 0.0) -> RuleCheck:
     return RuleCheck(rule, float(value), float(limit), bool(value <= limit + slack), unit)
 
@@ -57,6 +96,8 @@ def check_rules(gauge: Gauge, rules: RandomGaugeRules = RandomGaugeRules(),
                   1e-9),
         _at_least("smallest bend between adjacent faces", np.min(adjacent_face_angles_deg(gauge)),
                   min_corner_angle_deg, "deg"),
+        _at_least("smallest bend in the profile (poses drawn from the pose range)",
+                  np.min(weakest_profile_bends_deg(gauge)), min_corner_angle_deg, "deg"),
         _at_least(f"ridge directions >= {rules.min_ridge_separation_deg:g} deg apart",
                   distinct_directions(np.arctan(gauge.u), rules.min_ridge_separation_deg), 4, "ridges"),
         _at_most("relief (highest - lowest top point)", np.ptp(gauge.corner_heights()) * 1e3, rules.max_relief * 1e3,
