@@ -177,3 +177,17 @@ def test_an_idle_connection_is_closed_within_a_second_and_frees_the_slot(control
         idle.next(timeout=3.0)
     assert time.monotonic() - opened < 1.5 and controller.idle_closed == 1
     armed(controller)  # the one slot is free again
+
+
+def test_the_controller_counts_the_triggers_that_did_not_come_one_period_after_the_last() -> None:
+    """The trigger stamps' witness (test_trigger_stamps): a period whose trigger came a tick late, as when the
+    task missed one, is one step; the periods after it, a period apart again, are not."""
+    c = RobotController(Arm(), port=0)
+    try:
+        status = c.app.status()
+        period_ns = round(c.period_s * 1e9)
+        for tick_ns in (0, period_ns, 2 * period_ns, 3 * period_ns + 4_000_000, 4 * period_ns + 4_000_000):
+            c._period(tick_ns, status)
+        assert c.trigger_steps == 1 and c.report()["robot_trigger_steps"] == 1
+    finally:
+        c.close()

@@ -68,6 +68,10 @@ class RobotController:
         self.app = HostApplication(configuration(limits, period_ticks), host, port)
         self._pushed: tuple[float, float] | None = None
         self._periods = 0
+        # the controller's own record of its trigger's spacing (its clock, not the stamps a test judges): periods
+        # whose trigger came other than one period after the last, as when its task missed ticks
+        self.trigger_steps = 0
+        self._last_trigger_ns: int | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.port = 0
@@ -133,6 +137,7 @@ class RobotController:
                 "robot_corrections_replaced": s.replaced,
                 "robot_session_end": s.session_end.decode(errors="replace") or "none",
                 "robot_sessions_ended": s.sessions_ended, "robot_clock_overruns": self.app.overruns(),
+                "robot_trigger_steps": self.trigger_steps,
                 "arm_offset_um": [round(x * 1e6, 1) for x in self.arm.position[:3]]}
 
     # ---------------------------------------------------------------- the clock
@@ -169,6 +174,10 @@ class RobotController:
                 self._period(int(deadline * 1e9), status)
 
     def _period(self, tick_ns: int, status: Status) -> None:
+        if self._last_trigger_ns is not None and abs(tick_ns - self._last_trigger_ns - self.period_s * 1e9) > \
+                TICK_S * 1e9 / 2:
+            self.trigger_steps += 1
+        self._last_trigger_ns = tick_ns
         if status.periods != self._periods and self.on_applied is not None:  # an armed period
             self.on_applied(time.time(), tuple(status.period_step))
         self._periods = status.periods

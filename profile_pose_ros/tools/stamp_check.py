@@ -78,7 +78,8 @@ def one_start(log_dir, seconds: float, estimator: bool, cell_params: dict, drive
                   ("pairings", "connections", "trigger_port_reopens", "unsynced_profiles", "discarded_while_pairing",
                    "dropped_late_trigger_line", "dropped_unconfirmed_stamp")}
         cell = {key: graph.diagnostic("sim_cell", key, "?") for key in
-                ("profiler_closes", "mcu_closes", "mcu_reboots", "late_signals", "robot_clock_overruns")}
+                ("profiler_closes", "mcu_closes", "mcu_reboots", "late_signals", "robot_clock_overruns",
+                 "robot_trigger_steps")}
     finally:
         graph.close()
     return {"profiles": profiles, "poses": poses, "driver": driver, "cell": cell}
