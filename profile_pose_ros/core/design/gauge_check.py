@@ -54,10 +54,11 @@ def weakest_profile_bends_deg(gauge: Gauge, poses: int = 20, seed: int = 0) -> n
 
     rng = np.random.default_rng(seed)
     bends = [profile_bends_deg(gauge, *nominal_pose(gauge))]
-    try:
-        bends += [profile_bends_deg(gauge, *sample_pose(gauge, rng, max_tries=200)) for _ in range(poses)]
-    except RuntimeError:
-        pass
+    for _ in range(poses):
+        try:
+            bends.append(profile_bends_deg(gauge, *sample_pose(gauge, rng, max_tries=200)))
+        except RuntimeError:  # the poses drawn so far still count
+            break
     return np.min(bends, axis=0)
 
 

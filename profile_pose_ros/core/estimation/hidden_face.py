@@ -133,9 +133,17 @@ class _TableLayout:
     virtual ridges between faces left[k] and right[k] of hypothesis k (n + k), or a NaN row (the last)."""
     source: np.ndarray  # (MAX_HIDDEN_IN_A_GAP + n + 1, n + 1, n)
     hypotheses: np.ndarray  # (k, 2): count, face of gauge.without_face(face, count)
-    left: np.ndarray
-    right: np.ndarray
     runs: tuple[tuple[int, int], ...]  # first, last of gauge.faces_in_view(first, last)
+
+    @property
+    def left(self) -> np.ndarray:
+        """The face before each hypothesis's hidden ones."""
+        return self.hypotheses[:, 1] - 1
+
+    @property
+    def right(self) -> np.ndarray:
+        """The face after them."""
+        return self.hypotheses[:, 1] + self.hypotheses[:, 0]
 
 
 @lru_cache(maxsize=16)
@@ -149,10 +157,9 @@ def _table_layout(n: int) -> _TableLayout:
         source[count - 1, face, :n - count] = [*range(face - 1), n + k, *range(face + count, n)]
     for first, last in runs:
         source[MAX_HIDDEN_IN_A_GAP + first, last, :last - first] = range(first, last)
-    left, right = hypotheses[:, 1] - 1, hypotheses[:, 1] + hypotheses[:, 0]
-    for shared in (source, hypotheses, left, right):  # one layout serves every gauge of n ridges
+    for shared in (source, hypotheses):  # one layout serves every gauge of n ridges
         shared.setflags(write=False)
-    return _TableLayout(source, hypotheses, left, right, runs)
+    return _TableLayout(source, hypotheses, runs)
 
 
 def make_partial_gauges(gauge: Gauge) -> None:
