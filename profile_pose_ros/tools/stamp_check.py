@@ -74,6 +74,11 @@ def one_start(log_dir, seconds: float, estimator: bool, cell_params: dict, drive
         first = time.monotonic()
         graph.spin_until(lambda: time.monotonic() - first >= seconds and len(profiles) >= at_least and (
             not estimator or len(poses) >= at_least), seconds + 30.0)
+        # the counts below witness the stamps recorded: read them from diagnostics sent after the last one (every
+        # 0.5 s), or a trigger step in the last half second shows in the stamps and not yet in its witness
+        ended = time.monotonic()
+        graph.spin_until(lambda: all(graph.reported_at(node) > ended for node in ("sim_cell", "profiler_driver")),
+                         5.0)
         driver = {key: graph.diagnostic("profiler_driver", key, "?") for key in
                   ("pairings", "connections", "trigger_port_reopens", "unsynced_profiles", "discarded_while_pairing",
                    "dropped_late_trigger_line", "dropped_unconfirmed_stamp")}
