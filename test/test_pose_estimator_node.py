@@ -256,3 +256,24 @@ def test_a_node_behind_skips_profiles_older_than_max_profile_age(ros, gauge, rng
     assert probe.estimator.set_parameters([Parameter("max_profile_age", value=0.0)])[0].successful
     assert probe.send_until(cloud_from_points(points, old_stamp, "profiler"),
                             lambda: probe.pose_for(old_stamp) is not None)
+
+
+def test_corners_too_weak_for_min_corner_angle_are_reported_while_it_is_set(ros):
+    """The paper gauge's corners bend by 56-62 deg in its profiles: at min_corner_angle 0.5 rad (28.6 deg, half
+    of 57.3) its two end corners are named, in diagnostics for as long as the setting holds, and none at 5 deg."""
+    probe = Probe(ros)
+
+    def weak_corners():
+        values = [dict((kv.key, kv.value) for kv in s.values) for a in probe.diagnostics for s in a.status
+                  if s.name.startswith("pose_estimator")]
+        return values[-1].get("weak_corners") if values else None
+
+    assert ros.spin_until(lambda: weak_corners() == "none"), weak_corners()
+    assert probe.estimator.set_parameters([Parameter("min_corner_angle", value=0.5)])[0].successful
+    probe.diagnostics.clear()
+    assert ros.spin_until(lambda: weak_corners() not in (None, "none")), weak_corners()
+    named = weak_corners()
+    assert "faces 0/1 as little as 56.3 deg" in named and "faces 4/5" in named and "faces 1/2" not in named, named
+    assert probe.estimator.set_parameters([Parameter("min_corner_angle", value=0.0873)])[0].successful
+    probe.diagnostics.clear()
+    assert ros.spin_until(lambda: weak_corners() == "none"), weak_corners()

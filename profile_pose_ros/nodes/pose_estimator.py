@@ -23,7 +23,7 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ..core.compiled import loader
-from ..core.design.gauge_check import weak_corner_warning
+from ..core.design.gauge_check import weak_corner_warning, weakest_profile_bends_deg
 from ..core.estimation.estimator import estimate_pose, warm_up
 from ..core.estimation.result import WEIGHTINGS, EstimatorOptions
 from ..core.model.gauge import Gauge, GaugeError
@@ -178,9 +178,9 @@ class PoseEstimatorNode(Node):
             self.get_logger().info("compiling the estimator for this machine before the first profile "
                                    "(once per installed version, about a minute)")
         compile_s = warm_up(self.gauge, self.options)  # compile (or load) before the first profile
-        weak_corners = weak_corner_warning(self.gauge, self.options.corners.min_corner_angle)
-        if weak_corners is not None:
-            self.get_logger().warning(weak_corners)
+        self.profile_bends = weakest_profile_bends_deg(self.gauge)  # per corner: min_corner_angle is read against it
+        self.weak_corners = None
+        self._check_corner_bends()
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         # rclpy attaches default QoS-event handlers to every endpoint, and its executor walks all of them on
@@ -239,7 +239,16 @@ class PoseEstimatorNode(Node):
         if "diagnostics_period" in {p.name for p in parameters}:
             self.diagnostics_timer.timer_period_ns = int(values["diagnostics_period"] * 1e9)
         self.values, self.options = values, options
+        self._check_corner_bends()
         return SetParametersResult(successful=True)
+
+    def _check_corner_bends(self) -> None:
+        """Say, when it changes, which corners bend too little in the profile for the min_corner_angle now set
+        (their profiles refused as a face short); diagnostics carry it for as long as it holds."""
+        warning = weak_corner_warning(self.gauge, self.options.corners.min_corner_angle, self.profile_bends)
+        if warning is not None and warning != self.weak_corners:
+            self.get_logger().warning(warning)
+        self.weak_corners = warning
 
     # ------------------------------------------------------------------ profiles
     @staticmethod
@@ -348,7 +357,7 @@ class PoseEstimatorNode(Node):
             "last_reprojection_error_um": self.last_reprojection_error * 1e6,
             "mean_processing_ms": 1e3 * w["busy"] / received if received else 0.0,
             "mean_processing_cpu_ms": 1e3 * w["cpu"] / received if received else 0.0,
-            "gauge": self.gauge.name, "gauge_file": self.gauge_file,
+            "gauge": self.gauge.name, "gauge_file": self.gauge_file, "weak_corners": self.weak_corners or "none",
             "pose_subscribers": self.pose_pub.get_subscription_count(),  # matched: who gets the poses now
             **self.latency.report(),
         }

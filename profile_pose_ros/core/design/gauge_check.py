@@ -62,11 +62,13 @@ def weakest_profile_bends_deg(gauge: Gauge, poses: int = 20, seed: int = 0) -> n
     return np.min(bends, axis=0)
 
 
-def weak_corner_warning(gauge: Gauge, min_corner_angle: float) -> str | None:
+def weak_corner_warning(gauge: Gauge, min_corner_angle: float, bends: np.ndarray | None = None) -> str | None:
     """Words for a commissioning engineer when some corner bends, in the profiles of the pose range, by less than
     twice what corner detection needs (min_corner_angle, rad): under it detection merges the two faces and
-    refuses the profile ("found n - 1 corners"), and near it often does. None when every corner bends enough."""
-    bends = weakest_profile_bends_deg(gauge)
+    refuses the profile ("found n - 1 corners"), and near it often does. None when every corner bends enough.
+    bends: weakest_profile_bends_deg(gauge), when the caller keeps it (drawing the poses takes tens of ms)."""
+    if bends is None:
+        bends = weakest_profile_bends_deg(gauge)
     needed = np.degrees(min_corner_angle)
     weak = np.flatnonzero(bends < 2 * needed)
     if len(weak) == 0:
