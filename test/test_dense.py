@@ -150,6 +150,54 @@ def test_each_point_is_classified_as_testing_every_ridge_would():
             assert np.allclose(gradient, reference[1], rtol=1e-9, atol=1e-9 * np.abs(reference[1]).max())
 
 
+def test_the_sums_moved_to_another_pose_are_those_the_same_points_give_there():
+    """Between passes over the points the refinement steps on the kept points' face sums alone
+    (dense_kernel._moved_sums): at a pose a micrometre and ten microradians away, where the same points
+    are kept, they are the sums a pass over the points computes there, so the steps between passes are
+    Gauss-Newton's on those points."""
+    from profile_pose_ros.core.compiled.dense_kernel import _classify, _face_models, _moved_sums
+    from profile_pose_ros.core.compiled.estimate_kernel import _so3_exp
+    from profile_pose_ros.core.design.gauge_design import random_gauge
+    from profile_pose_ros.core.estimation.dense import DenseOptions
+
+    rng = np.random.default_rng(8)
+    options = DenseOptions()
+    compared = 0
+    for n in (4, 5, 7, 10):
+        gauge = random_gauge(n, rng)
+        normals, offsets, ridge_q, ridge_u = gauge.kernel_faces
+        for _ in range(10):
+            rotation, t = sample_pose(gauge, rng)
+            points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng, spike_fraction=0.02)
+            points = np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
+            count = len(points)
+
+            def classified(rot, trans):
+                model, sums = np.empty((n + 1, 7)), np.empty((n + 1, 6))
+                face_of = np.empty(count, np.int64)
+                _face_models(normals, offsets, rot, trans, model)
+                _classify(points, ridge_q, ridge_u, gauge.width, gauge.length, rot, trans, options.ridge_margin,
+                          1e9, options.min_outlier_floor, model, face_of, np.empty(count), np.empty(count),
+                          np.empty(2048, np.int64), np.empty(count, np.int64), sums)  # no cut: a cut moves too
+                return model, sums, face_of
+
+            turn = np.empty((3, 3))
+            _so3_exp(rng.normal(0, 1e-5, 3), turn)
+            moved_rotation, moved_t = rotation @ turn, t + rng.normal(0, 1e-6, 3)
+            model, sums, face_of = classified(rotation, t)
+            moved_model, expected, moved_face_of = classified(moved_rotation, moved_t)
+            if not np.array_equal(face_of, moved_face_of):
+                continue  # a point crossed a margin: other points, other sums
+            moved = np.empty((n + 1, 6))
+            _moved_sums(model, moved_model, sums, moved)
+            assert np.array_equal(moved[:, [0, 1, 2, 5]], expected[:, [0, 1, 2, 5]])
+            scale = np.abs(expected[:, 3:5]).max()
+            assert np.allclose(moved[:, 3:5], expected[:, 3:5], rtol=0, atol=1e-9 * scale)
+            assert not np.allclose(sums[:, 3:5], expected[:, 3:5], rtol=0, atol=1e-3 * scale)  # the move shows
+            compared += 1
+    assert compared >= 20
+
+
 def test_the_valley_term_from_the_faces_sums_is_the_one_from_every_points_second_derivative():
     """dense_kernel._add_valley_curvature takes J^T p'' from each face's sums (p'' is linear in x on a face):
     the same term as differencing every kept point's predicted depth at +-s v and summing over the points."""
