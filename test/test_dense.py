@@ -101,6 +101,19 @@ def _normal_equations(sums: np.ndarray, model: np.ndarray) -> tuple[np.ndarray, 
     return hessian, gradient
 
 
+def _random_gauge_profiles(rng: np.random.Generator):
+    """(n, gauge, rotation, t, points): ten profiles with 2 % spikes, their NaN rows removed, of a random gauge of
+    each of 4, 5, 7 and 10 ridges, drawn from rng in turn."""
+    from profile_pose_ros.core.design.gauge_design import random_gauge
+
+    for n in (4, 5, 7, 10):
+        gauge = random_gauge(n, rng)
+        for _ in range(10):
+            rotation, t = sample_pose(gauge, rng)
+            points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng, spike_fraction=0.02)
+            yield n, gauge, rotation, t, np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
+
+
 def test_each_point_is_classified_as_testing_every_ridge_would():
     """dense_kernel._classify walks from the previous point's face and measures the clearance to that face's
     two ridges only: the same faces, the same cut and the same residuals as testing every ridge, on gauges of
@@ -108,46 +121,39 @@ def test_each_point_is_classified_as_testing_every_ridge_would():
     over every usable point with those beyond the cut taken out again, give the normal equations of the kept
     points alone."""
     from profile_pose_ros.core.compiled.dense_kernel import _classify, _face_models
-    from profile_pose_ros.core.design.gauge_design import random_gauge
     from profile_pose_ros.core.estimation.dense import DenseOptions
 
-    rng = np.random.default_rng(5)
     options = DenseOptions()
-    for n in (4, 5, 7, 10):
-        gauge = random_gauge(n, rng)
+    for n, gauge, rotation, t, points in _random_gauge_profiles(np.random.default_rng(5)):
         normals, offsets, ridge_q, ridge_u = gauge.kernel_faces
-        for _ in range(10):
-            rotation, t = sample_pose(gauge, rng)
-            points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng, spike_fraction=0.02)
-            points = np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
-            model = np.empty((n + 1, 7))
-            _face_models(normals, offsets, rotation, t, model)
-            count = len(points)
-            face_of, residual, spread = np.empty(count, np.int64), np.empty(count), np.empty(count)
-            sums = np.empty((n + 1, 6))
-            kept, squares = _classify(points, ridge_q, ridge_u, gauge.width, gauge.length, rotation, t,
-                                      options.ridge_margin, options.outlier_threshold, options.min_outlier_floor,
-                                      model, face_of, residual, spread, np.empty(2048, np.int64),
-                                      np.empty(count, np.int64), sums)
-            mapped = t[:2] + points[:, :1] * rotation[:2, 0] + points[:, 1:] * rotation[:2, 2]
-            ridges = ridge_q + ridge_u * mapped[:, 1:]
-            inside = (np.abs(mapped[:, 0]) < gauge.width / 2) & (np.abs(mapped[:, 1]) < gauge.length / 2)
-            clearance = np.minimum(np.abs(ridges - mapped[:, :1]).min(axis=1),
-                                   gauge.width / 2 - np.abs(mapped[:, 0]))
-            usable = inside & (clearance > options.ridge_margin)
-            faces = (ridges < mapped[:, :1]).sum(axis=1)
-            depth = (model[faces, 2] - points[:, 0] * model[faces, 0]) * model[faces, 1]
-            r = points[:, 1] - depth
-            limit = max(options.outlier_threshold * 1.4826 * np.median(np.abs(r[usable])), options.min_outlier_floor)
-            expected = np.where(usable & (np.abs(r) <= limit), faces, -1)
-            assert kept == (expected >= 0).sum()
-            assert np.array_equal(face_of, expected)
-            assert np.allclose(residual[expected >= 0], r[expected >= 0], rtol=0, atol=1e-15)
-            assert squares == pytest.approx((r[expected >= 0] ** 2).sum(), rel=1e-9)
-            hessian, gradient = _normal_equations(sums, model)
-            reference = _normal_equations(_face_sums(points, expected, r, n + 1), model)
-            assert np.allclose(hessian, reference[0], rtol=1e-9, atol=0)
-            assert np.allclose(gradient, reference[1], rtol=1e-9, atol=1e-9 * np.abs(reference[1]).max())
+        model = np.empty((n + 1, 7))
+        _face_models(normals, offsets, rotation, t, model)
+        count = len(points)
+        face_of, residual, spread = np.empty(count, np.int64), np.empty(count), np.empty(count)
+        sums = np.empty((n + 1, 6))
+        kept, squares = _classify(points, ridge_q, ridge_u, gauge.width, gauge.length, rotation, t,
+                                  options.ridge_margin, options.outlier_threshold, options.min_outlier_floor,
+                                  model, face_of, residual, spread, np.empty(2048, np.int64),
+                                  np.empty(count, np.int64), sums)
+        mapped = t[:2] + points[:, :1] * rotation[:2, 0] + points[:, 1:] * rotation[:2, 2]
+        ridges = ridge_q + ridge_u * mapped[:, 1:]
+        inside = (np.abs(mapped[:, 0]) < gauge.width / 2) & (np.abs(mapped[:, 1]) < gauge.length / 2)
+        clearance = np.minimum(np.abs(ridges - mapped[:, :1]).min(axis=1),
+                               gauge.width / 2 - np.abs(mapped[:, 0]))
+        usable = inside & (clearance > options.ridge_margin)
+        faces = (ridges < mapped[:, :1]).sum(axis=1)
+        depth = (model[faces, 2] - points[:, 0] * model[faces, 0]) * model[faces, 1]
+        r = points[:, 1] - depth
+        limit = max(options.outlier_threshold * 1.4826 * np.median(np.abs(r[usable])), options.min_outlier_floor)
+        expected = np.where(usable & (np.abs(r) <= limit), faces, -1)
+        assert kept == (expected >= 0).sum()
+        assert np.array_equal(face_of, expected)
+        assert np.allclose(residual[expected >= 0], r[expected >= 0], rtol=0, atol=1e-15)
+        assert squares == pytest.approx((r[expected >= 0] ** 2).sum(), rel=1e-9)
+        hessian, gradient = _normal_equations(sums, model)
+        reference = _normal_equations(_face_sums(points, expected, r, n + 1), model)
+        assert np.allclose(hessian, reference[0], rtol=1e-9, atol=0)
+        assert np.allclose(gradient, reference[1], rtol=1e-9, atol=1e-9 * np.abs(reference[1]).max())
 
 
 def test_the_sums_moved_to_another_pose_are_those_the_same_points_give_there():
@@ -157,44 +163,38 @@ def test_the_sums_moved_to_another_pose_are_those_the_same_points_give_there():
     Gauss-Newton's on those points."""
     from profile_pose_ros.core.compiled.dense_kernel import _classify, _face_models, _moved_sums
     from profile_pose_ros.core.compiled.estimate_kernel import _so3_exp
-    from profile_pose_ros.core.design.gauge_design import random_gauge
     from profile_pose_ros.core.estimation.dense import DenseOptions
 
     rng = np.random.default_rng(8)
     options = DenseOptions()
     compared = 0
-    for n in (4, 5, 7, 10):
-        gauge = random_gauge(n, rng)
+    for n, gauge, rotation, t, points in _random_gauge_profiles(rng):
         normals, offsets, ridge_q, ridge_u = gauge.kernel_faces
-        for _ in range(10):
-            rotation, t = sample_pose(gauge, rng)
-            points = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng, spike_fraction=0.02)
-            points = np.ascontiguousarray(points[np.isfinite(points).all(axis=1)])
-            count = len(points)
+        count = len(points)
 
-            def classified(rot, trans):
-                model, sums = np.empty((n + 1, 7)), np.empty((n + 1, 6))
-                face_of = np.empty(count, np.int64)
-                _face_models(normals, offsets, rot, trans, model)
-                _classify(points, ridge_q, ridge_u, gauge.width, gauge.length, rot, trans, options.ridge_margin,
-                          1e9, options.min_outlier_floor, model, face_of, np.empty(count), np.empty(count),
-                          np.empty(2048, np.int64), np.empty(count, np.int64), sums)  # no cut: a cut moves too
-                return model, sums, face_of
+        def classified(rot, trans):
+            model, sums = np.empty((n + 1, 7)), np.empty((n + 1, 6))
+            face_of = np.empty(count, np.int64)
+            _face_models(normals, offsets, rot, trans, model)
+            _classify(points, ridge_q, ridge_u, gauge.width, gauge.length, rot, trans, options.ridge_margin,
+                      1e9, options.min_outlier_floor, model, face_of, np.empty(count), np.empty(count),
+                      np.empty(2048, np.int64), np.empty(count, np.int64), sums)  # no cut: a cut moves too
+            return model, sums, face_of
 
-            turn = np.empty((3, 3))
-            _so3_exp(rng.normal(0, 1e-5, 3), turn)
-            moved_rotation, moved_t = rotation @ turn, t + rng.normal(0, 1e-6, 3)
-            model, sums, face_of = classified(rotation, t)
-            moved_model, expected, moved_face_of = classified(moved_rotation, moved_t)
-            if not np.array_equal(face_of, moved_face_of):
-                continue  # a point crossed a margin: other points, other sums
-            moved = np.empty((n + 1, 6))
-            _moved_sums(model, moved_model, sums, moved)
-            assert np.array_equal(moved[:, [0, 1, 2, 5]], expected[:, [0, 1, 2, 5]])
-            scale = np.abs(expected[:, 3:5]).max()
-            assert np.allclose(moved[:, 3:5], expected[:, 3:5], rtol=0, atol=1e-9 * scale)
-            assert not np.allclose(sums[:, 3:5], expected[:, 3:5], rtol=0, atol=1e-3 * scale)  # the move shows
-            compared += 1
+        turn = np.empty((3, 3))
+        _so3_exp(rng.normal(0, 1e-5, 3), turn)
+        moved_rotation, moved_t = rotation @ turn, t + rng.normal(0, 1e-6, 3)
+        model, sums, face_of = classified(rotation, t)
+        moved_model, expected, moved_face_of = classified(moved_rotation, moved_t)
+        if not np.array_equal(face_of, moved_face_of):
+            continue  # a point crossed a margin: other points, other sums
+        moved = np.empty((n + 1, 6))
+        _moved_sums(model, moved_model, sums, moved)
+        assert np.array_equal(moved[:, [0, 1, 2, 5]], expected[:, [0, 1, 2, 5]])
+        scale = np.abs(expected[:, 3:5]).max()
+        assert np.allclose(moved[:, 3:5], expected[:, 3:5], rtol=0, atol=1e-9 * scale)
+        assert not np.allclose(sums[:, 3:5], expected[:, 3:5], rtol=0, atol=1e-3 * scale)  # the move shows
+        compared += 1
     assert compared >= 20
 
 
