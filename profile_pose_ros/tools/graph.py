@@ -106,6 +106,22 @@ def prepare_kernel() -> None:
           f" in {time.monotonic() - started:.0f} s", flush=True)
 
 
+REPLY_WAIT_S = 1.0  # how long first_answered waits for a reply before it sends the request again
+
+
+def first_answered(send, spin_until, deadline: float, wait: float = REPLY_WAIT_S):
+    """The first of the futures send() returns that is done, sending again every `wait` s until the monotonic
+    `deadline`; None if none is answered by then. For a request that changes nothing, whose reply may be lost
+    (spin_until(condition, timeout) serves the replies)."""
+    futures = []
+    while True:
+        futures.append(send())
+        spin_until(lambda: any(f.done() for f in futures), max(0.0, min(wait, deadline - time.monotonic())))
+        answered = next((f for f in futures if f.done()), None)
+        if answered is not None or time.monotonic() >= deadline:
+            return answered
+
+
 class Graph:
     """Processes are closed in the reverse of their start order: start the cell first and the bridge
     last, so that the bridge stops (and sends STOP) first."""
@@ -313,11 +329,19 @@ class Graph:
         from rclpy.parameter import Parameter
         from rclpy.parameter_client import AsyncParameterClient
 
+        deadline = time.monotonic() + timeout
         if node_name not in self._parameter_clients:
-            self._parameter_clients[node_name] = AsyncParameterClient(self.node, node_name)
+            client = AsyncParameterClient(self.node, node_name)
+            if not client.wait_for_services(timeout_sec=timeout):
+                raise RuntimeError(f"{node_name}'s parameter services are not available")
+            # wait_for_services sees the request's path only: a reply can still be dropped while the node's reply
+            # writer has not matched this client's reader (Fast DDS drops it after 100 ms; ros2/ros2#1253). An empty
+            # request changes nothing, so it is sent again until one is answered; the real one then goes out once
+            # (sent twice, sim_cell's clock would restart and count its triggers again)
+            if first_answered(lambda: client.set_parameters([]), self.spin_until, deadline) is None:
+                raise RuntimeError(f"{node_name} did not answer set_parameters")
+            self._parameter_clients[node_name] = client
         client = self._parameter_clients[node_name]
-        if not client.wait_for_services(timeout_sec=timeout):
-            raise RuntimeError(f"{node_name}'s parameter services are not available")
         future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
         self.spin_until(future.done, timeout)
         if not future.done():
