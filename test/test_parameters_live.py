@@ -4,15 +4,12 @@ working values afresh where it uses them). Whatever a node reads only at start i
 `ros2 param set` says so instead of reporting a success that changes nothing."""
 from __future__ import annotations
 
-import time
-
 import pytest
 from rclpy.parameter import Parameter
-from rclpy.parameter_client import AsyncParameterClient
 
 from profile_pose_ros.nodes import motoplus_bridge, pd_compensator, pose_estimator, profiler_driver
 from profile_pose_ros.nodes import sim_cell
-from profile_pose_ros.tools.graph import first_answered
+from profile_pose_ros.tools.graph import parameter_client
 
 NODES = {
     "profiler_driver": (profiler_driver, lambda ctx: profiler_driver.ProfilerDriverNode(
@@ -48,10 +45,9 @@ def node_and_setter(ros, name: str):
     """The node, its PARAMETERS, and a function that sets one of them through the parameter service."""
     module, factory = NODES[name]
     node = ros.add(factory(ros.context))
-    client = AsyncParameterClient(ros.node(f"{name}_setter"), node.get_name())
-    assert client.wait_for_services(timeout_sec=10.0)
-    # a reply DDS drops while its path is still being matched would fail the first set (tools/graph.py)
-    assert first_answered(lambda: client.set_parameters([]), ros.spin_until, time.monotonic() + 10.0) is not None
+    # its services available and its replies matched (RuntimeError otherwise): a reply DDS drops while its path
+    # is still being matched would fail the first set
+    client = parameter_client(ros.node(f"{name}_setter"), node.get_name(), ros.spin_until, 10.0)
 
     def set_one(param_name: str, value):
         future = client.set_parameters([Parameter(param_name, value=value)])

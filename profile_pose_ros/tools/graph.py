@@ -122,6 +122,23 @@ def first_answered(send, spin_until, deadline: float, wait: float = REPLY_WAIT_S
             return answered
 
 
+def parameter_client(node, target: str, spin_until, timeout: float):
+    """An AsyncParameterClient on `node` for the node named `target` whose replies reach it, or RuntimeError.
+    wait_for_services sees the request's path only: a reply can still be dropped while the target's reply writer
+    has not matched this client's reader (Fast DDS drops it after 100 ms; ros2/ros2#1253). An empty request
+    changes nothing, so it is sent again until one is answered, and a caller's real request then goes out once
+    (sent twice, sim_cell's clock would restart and count its triggers again)."""
+    from rclpy.parameter_client import AsyncParameterClient
+
+    deadline = time.monotonic() + timeout
+    client = AsyncParameterClient(node, target)
+    if not client.wait_for_services(timeout_sec=timeout):
+        raise RuntimeError(f"{target}'s parameter services are not available")
+    if first_answered(lambda: client.set_parameters([]), spin_until, deadline) is None:
+        raise RuntimeError(f"{target} did not answer set_parameters")
+    return client
+
+
 class Graph:
     """Processes are closed in the reverse of their start order: start the cell first and the bridge
     last, so that the bridge stops (and sends STOP) first."""
@@ -327,20 +344,9 @@ class Graph:
     def set_parameters(self, node_name: str, values: dict, timeout: float = 10.0) -> None:
         """Set parameters of a running node through its service; raises if refused or unanswered."""
         from rclpy.parameter import Parameter
-        from rclpy.parameter_client import AsyncParameterClient
 
-        deadline = time.monotonic() + timeout
         if node_name not in self._parameter_clients:
-            client = AsyncParameterClient(self.node, node_name)
-            if not client.wait_for_services(timeout_sec=timeout):
-                raise RuntimeError(f"{node_name}'s parameter services are not available")
-            # wait_for_services sees the request's path only: a reply can still be dropped while the node's reply
-            # writer has not matched this client's reader (Fast DDS drops it after 100 ms; ros2/ros2#1253). An empty
-            # request changes nothing, so it is sent again until one is answered; the real one then goes out once
-            # (sent twice, sim_cell's clock would restart and count its triggers again)
-            if first_answered(lambda: client.set_parameters([]), self.spin_until, deadline) is None:
-                raise RuntimeError(f"{node_name} did not answer set_parameters")
-            self._parameter_clients[node_name] = client
+            self._parameter_clients[node_name] = parameter_client(self.node, node_name, self.spin_until, timeout)
         client = self._parameter_clients[node_name]
         future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
         self.spin_until(future.done, timeout)
