@@ -7,6 +7,7 @@ from profile_pose_ros.core import (EstimatorOptions, estimate_pose, pose_error, 
 from profile_pose_ros.core.estimation.estimator import is_wrong_minimum
 from profile_pose_ros.core.design.gauge_design import heightfield_gauge, random_gauge
 from profile_pose_ros.core.model.gauge import Gauge
+from profile_pose_ros.core.model.render import true_corners
 from profile_pose_ros.core.model.rotation import so3_log
 from profile_pose_ros.resources import config_path
 
@@ -31,6 +32,24 @@ def test_float32_profile_is_within_rounding(gauge, rng):
         assert estimate.ok, estimate.reason
         worst = np.maximum(worst, pose_error(estimate.R, estimate.t, rotation, t))
     assert worst[0] < 2e-6 and worst[1] < 10e-6
+
+
+def test_a_profile_reported_from_plus_x_to_minus_x_gives_the_same_pose(gauge, rng):
+    """A profiler or driver may report the laser line in either direction: the same points, the same pose (a
+    gap's hidden face included); an order that is neither is refused with its reason."""
+    for spikes, gap in ((0.0, False), (0.01, False), (0.0, True)):
+        rotation, t = sample_pose(gauge, rng)
+        profile = render_profile(gauge, rotation, t, noise_std=5e-6, spike_fraction=spikes, rng=rng)
+        if gap:  # the middle face's points hidden: a partial view
+            corners = true_corners(gauge, rotation, t)[:, 0]
+            profile[(profile[:, 0] > corners[1] - 1e-3) & (profile[:, 0] < corners[2] + 1e-3), 1] = np.nan
+        forward, backward = estimate_pose(profile, gauge), estimate_pose(profile[::-1], gauge)
+        assert forward.ok and backward.ok, (forward.reason, backward.reason)
+        assert forward.hidden_face == backward.hidden_face and (forward.hidden_face is not None) == gap
+        for a, b in ((forward.R, backward.R), (forward.t, backward.t), (forward.covariance, backward.covariance)):
+            assert np.allclose(a, b, rtol=1e-9, atol=1e-15)
+    scrambled = estimate_pose(np.roll(profile, len(profile) // 2, axis=0), gauge)
+    assert not scrambled.ok and "not strictly increasing" in scrambled.reason
 
 
 @pytest.mark.parametrize("weighting", ["corner_covariance", "uniform"])

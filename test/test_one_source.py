@@ -37,7 +37,8 @@ def failure_cases(gauge, rng) -> list:
     other = heightfield_gauge("other", 0.12, 0.10, [-0.045, -0.02, 0.003, 0.025, 0.046],
                               np.radians([-8.0, 6.0, 12.0, -4.0, -9.0]), [-0.7, 0.75, -0.7, 0.8, -0.75, 0.7])
     return [np.full((3200, 2), np.nan), cut, np.column_stack([x, 0.4 + rng.uniform(-0.02, 0.02, len(x))]),
-            np.column_stack([x, 0.4 + 0.1 * x]), clean[::-1], render_profile(other, *sample_pose(other, rng))]
+            np.column_stack([x, 0.4 + 0.1 * x]), np.roll(clean, len(clean) // 2, axis=0),  # x neither increasing nor
+            render_profile(other, *sample_pose(other, rng))]  # decreasing: a scrambled message
 
 
 def test_compiled_and_uncompiled_runs_of_the_one_source_agree(gauge, rng):

@@ -119,10 +119,20 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
     timings = {"total": time.perf_counter() - start}
     outcome, m, which = result[:7], result[7], result[8:]
+    if outcome[0] == codes.X_NOT_INCREASING and x_decreasing(points):
+        return _estimate_in_one_call(points[::-1], gauge, options)
     if which[0] == codes.PARTIAL_NONE:
         return _described(outcome, outputs, lambda: gauge, options, timings)
     outputs = (outputs[0][:m], *outputs[1:6], outputs[6][:m], outputs[7][:m], outputs[8])
     return partial_view_estimate(outcome, outputs, which, where, gauge, options, _described, timings)
+
+
+def x_decreasing(points: np.ndarray) -> bool:
+    """Whether the valid points' x strictly decrease: a profiler (or a driver) that reports the laser line from
+    +x to -x gives the same profile as one reporting it from -x to +x, and is estimated in that order; any other
+    order is refused, as a fold-over or a scrambled message says something is wrong."""
+    x = points[np.isfinite(points).all(axis=1), 0]
+    return x.size > 1 and bool(np.all(np.diff(x) < 0))
 
 
 def _described(outcome: tuple, outputs: tuple, seen: Callable[[], Gauge], options: EstimatorOptions,
