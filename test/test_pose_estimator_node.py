@@ -106,24 +106,26 @@ def _other_gauge(gauge, rng):
     return render_profile(other, *sample_pose(other, rng), noise_std=5e-6, rng=rng)
 
 
-def _with_raw(points, column, value):
+def _with_raw(points, column, value, rows=slice(None)):
+    """The cloud of `points` with raw float32 values written into one column of some rows (the encoder would
+    sanitise them)."""
     msg = _cloud(points)
     raw = np.frombuffer(bytes(msg.data), dtype="<f4").copy().reshape(-1, 3)
-    raw[10:12, column] = value
+    raw[rows, column] = value
     msg.data = raw.tobytes()
     return msg
 
 
 BAD_INPUTS = {
     "empty cloud": (lambda g, r: _cloud(width=0, row_step=0, data=b""), "empty cloud"),
-    "all NaN": (lambda g, r: _cloud(np.full((500, 2), np.nan)), "are invalid (NaN)"),
+    "all NaN": (lambda g, r: _cloud(np.full((500, 2), np.nan)), "are invalid (NaN or +-inf)"),
     "row_step mismatch": (lambda g, r: _cloud(row_step=7), "row_step 7"),
     "data length mismatch": (lambda g, r: _cloud(width=501), "row_step"),
     "missing z field": (lambda g, r: _cloud(fields=_fields(("x", 0, 7), ("y", 4, 7))), "field 'z' is missing"),
     "missing x field": (lambda g, r: _cloud(fields=_fields(("y", 4, 7), ("z", 8, 7))), "field 'x' is missing"),
     "float64 field": (lambda g, r: _cloud(fields=_fields(("x", 0, 8), ("z", 8, 7))), "is FLOAT64"),
     "big-endian": (lambda g, r: _cloud(is_bigendian=True), "big-endian"),
-    "inf values": (lambda g, r: _with_raw(None, 2, np.inf), "+-inf"),
+    "inf everywhere": (lambda g, r: _with_raw(None, 2, np.inf), "+-inf"),
     "fewer corners": (lambda g, r: _cloud(_occluded(g, r)), "found 3 corners"),
     "another gauge": (lambda g, r: _cloud(_other_gauge(g, r)), "does not match gauge"),
     "pure noise": (lambda g, r: _cloud(_noise(r)), "corner detection"),
@@ -146,6 +148,24 @@ def test_bad_input_gives_no_pose_a_reason_and_a_live_node(ros, gauge, rng, case)
     stamp = probe.stamp()
     good = cloud_from_points(render_profile(gauge, rotation, t), stamp, "profiler")
     assert probe.send_until(good, lambda: probe.pose_for(stamp) is not None)
+
+
+def test_a_profile_with_rep117_infinities_for_invalid_points_gives_the_pose_of_its_nan_twin(ros, gauge, rng):
+    """A profiler driver that publishes +inf ("no return", REP-117) where this package's publishes NaN: the same
+    pose, to the bit."""
+    probe = Probe(ros)
+    rotation, t = sample_pose(gauge, rng)
+    profile = render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng)
+    unlit = np.isnan(profile).any(axis=1)
+    assert unlit.sum() > 100
+    poses = []
+    for value in (np.nan, np.inf):
+        stamp = probe.stamp()
+        msg = _with_raw(profile, 2, value, rows=unlit)
+        msg.header.stamp = stamp
+        assert probe.send_until(msg, lambda: probe.pose_for(stamp) is not None), "no pose"
+        poses.append(rotation_translation(probe.pose_for(stamp).pose))
+    assert np.array_equal(poses[0][0], poses[1][0]) and np.array_equal(poses[0][1], poses[1][1])
 
 
 def test_spiky_profiles_never_give_a_wrong_pose(ros, gauge, rng):

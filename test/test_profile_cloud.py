@@ -56,10 +56,24 @@ def test_rejections_say_what_is_wrong():
     all_nan = np.full((10, 2), np.nan)
     with pytest.raises(ProfileFormatError, match="all 10 points are invalid"):
         decode_profile(**layout(all_nan))
-    with pytest.raises(ProfileFormatError, match="2 points are"):
-        decode_profile(**with_column(2, [3, 7], np.inf))  # REP-117's +-inf codes are not profile points
+    with pytest.raises(ProfileFormatError, match=r"all 100 points are invalid \(NaN or \+-inf\)"):
+        decode_profile(**with_column(2, slice(None), np.inf))  # REP-117's "no return" everywhere
     with pytest.raises(ProfileFormatError, match="y != 0"):
         decode_profile(**with_column(1, slice(None), 0.01))
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("column, value", [(2, np.inf), (2, -np.inf), (0, np.inf)])
+def test_rep117_infinities_are_invalid_points_and_the_rest_decode(column, value, compiled):
+    """REP-117 codes +inf "no return" and -inf "too close", and some profiler drivers publish them where this
+    package's driver publishes NaN: such a point is invalid, like a NaN one, and every other point decodes."""
+    points = sample_points()
+    decoded = decode_profile(compiled=compiled, **with_column(column, [3, 7], value))
+    invalid = np.isnan(decoded).any(axis=1)
+    assert invalid[[3, 7]].all() and np.isnan(decoded[[3, 7]]).all()
+    assert np.array_equal(invalid, np.isnan(points).any(axis=1) | np.isin(np.arange(len(points)), [3, 7]))
+    kept = ~invalid
+    assert np.array_equal(decoded[kept], points[kept].astype(np.float32).astype(float))
 
 
 def with_column(column, rows, value):

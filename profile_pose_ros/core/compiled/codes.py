@@ -31,7 +31,7 @@ AMBIGUOUS_COST = 9.0
 AMBIGUOUS_DISTANCE = 5.0
 
 # decode_xz statuses (its count says how many points)
-DECODED, OFF_PLANE, INFINITE, ALL_INVALID = 0, 1, 2, 3
+DECODED, OFF_PLANE, ALL_INVALID = 0, 1, 2
 
 # partial views (partial_kernel.py, profile_kernel.py, estimation/hidden_face.py)
 GAP_PITCHES = 3.0  # a run between two valid points wider than this many point pitches is a gap, not the spacing

@@ -10,7 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..compiled.codes import ALL_INVALID, DECODED, INFINITE, OFF_PLANE
+from ..compiled.codes import ALL_INVALID, DECODED, OFF_PLANE
 from ..compiled.loader import decode_xz
 
 FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
@@ -85,8 +85,7 @@ def decode_profile(*, width: int, height: int, fields: Sequence[Field], is_bigen
 
 _REASONS = {
     OFF_PLANE: lambda count: f"{count} points have y != 0; a profile lies in the laser plane (y = 0)",
-    INFINITE: lambda count: f"{count} points are +-inf; invalid points must be NaN",
-    ALL_INVALID: lambda count: f"all {count} points are invalid (NaN)",
+    ALL_INVALID: lambda count: f"all {count} points are invalid (NaN or +-inf)",
 }
 
 
@@ -107,13 +106,12 @@ def _decode_numpy(raw: np.ndarray, by_name: dict, width: int, point_step: int, a
         off_plane = np.isfinite(y) & (y != 0.0)
         if off_plane.any():
             raise ProfileFormatError(_REASONS[OFF_PLANE](int(off_plane.sum())))
-    infinite = np.isinf(x) | np.isinf(z)
-    if infinite.any():
-        raise ProfileFormatError(_REASONS[INFINITE](int(infinite.sum())))
+    # REP-117's +-inf ("no return", "too close"), as some profiler drivers publish them: invalid points
+    x = np.where(np.isinf(x) | np.isinf(z), np.float32(np.nan), x)
     points = np.empty((width, 2))
     with np.errstate(invalid="ignore"):  # signalling NaNs (any bit pattern can arrive) are still NaN
-        np.add(x, 0.0 * z, out=points[:, 0])  # a point is invalid if either coordinate is NaN: 0 * NaN = NaN,
-        np.add(z, 0.0 * x, out=points[:, 1])  # and no inf is left to make 0 * inf = NaN by accident
+        np.add(x, 0.0 * z, out=points[:, 0])  # a point is invalid if either coordinate is NaN (0 * NaN = NaN;
+        np.add(z, 0.0 * x, out=points[:, 1])  # an inf z has made its x NaN, and 0 * inf is NaN too)
     if np.isnan(points[:, 0]).all():
         raise ProfileFormatError(_REASONS[ALL_INVALID](width))
     return points
