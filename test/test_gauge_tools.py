@@ -1,6 +1,7 @@
 """profile_pose gauge: each design rule fails on a hand-made gauge that breaks it; check, design and export
 work end to end; the STL is a closed solid by trimesh's own tests."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -9,7 +10,8 @@ import yaml
 
 from conftest import PAPER_GAUGE
 from profile_pose_ros.core import EstimatorOptions, Gauge, estimate_pose, render_profile, sample_pose
-from profile_pose_ros.core.design.gauge_check import (RequiredMotion, check_rules, motion_poses, range_of_motion,
+from profile_pose_ros.core.design.gauge_check import (RequiredMotion, check_rules, motion_poses, narrow_face_warning,
+                                                      narrowest_profile_faces, profile_pitch, range_of_motion,
                                                       weak_corner_warning, weakest_profile_bends_deg)
 from profile_pose_ros.core.design.gauge_design import RandomGaugeRules, heightfield_gauge
 from profile_pose_ros.core.model.gauge_mesh import gauge_mesh
@@ -60,6 +62,28 @@ def test_a_corner_the_profile_hardly_shows_is_named_and_its_profiles_are_refused
     warning = weak_corner_warning(weak, EstimatorOptions().corners.min_corner_angle)
     assert "faces 2/3 as little as" in warning and "faces 1/2" not in warning
     assert weak_corner_warning(made(), EstimatorOptions().corners.min_corner_angle) is None
+
+
+def test_a_face_too_narrow_for_a_thinned_profile_is_named_and_the_suggested_setting_keeps_it():
+    """Face 3 spans 4.3-6 mm of the profile: 57 points or more at the profiler's full 0.075 mm pitch, 14 at a
+    quarter of its points (binning or thinning, 0.3 mm), under min_segment_points (20), and detection then refuses
+    the profile as corners short; the check says so only at the coarse pitch, and its suggestion keeps the face."""
+    narrow = made(ridge_x=(-0.038, -0.019, 0.0, 0.005, 0.038), angles_deg=(-20, -10, 0, 3, 20))
+    widths = narrowest_profile_faces(narrow)
+    assert np.argmin(widths) == 2 and 4e-3 < widths[2] < 4.5e-3 and np.delete(widths, 2).min() > 15e-3
+    rng = np.random.default_rng(1)
+    profiles = [render_profile(narrow, *sample_pose(narrow, rng), noise_std=5e-6, rng=rng) for _ in range(8)]
+    fine, coarse = profile_pitch(profiles[0]), profile_pitch(profiles[0][::4])
+    assert np.isclose(fine, 75e-6) and np.isclose(coarse, 300e-6) and profile_pitch(profiles[0][::-1]) == fine
+    assert narrow_face_warning(narrow, 20, fine, widths) is None and narrow_face_warning(narrow, 20, np.nan) is None
+    warning = narrow_face_warning(narrow, 20, coarse, widths)
+    assert "face 3 as little as 4.3 mm, 14 points" in warning and "face 2" not in warning, warning
+    suggested = int(re.search(r"min_segment_points near (\d+)", warning).group(1))
+    for profile in profiles:
+        assert estimate_pose(profile, narrow).ok
+        refused = estimate_pose(profile[::4], narrow)
+        assert not refused.ok and refused.reason.startswith("corner detection: found"), refused.reason
+        assert estimate_pose(profile[::4], narrow, min_segment_points=suggested).ok
 
 
 def test_corners_unseen_at_the_nominal_pose_is_a_failure():

@@ -278,6 +278,33 @@ def test_a_node_behind_skips_profiles_older_than_max_profile_age(ros, gauge, rng
                             lambda: probe.pose_for(old_stamp) is not None)
 
 
+def test_faces_too_narrow_at_the_profiles_pitch_are_reported_while_min_segment_points_is_set(ros, gauge, rng):
+    """The paper gauge's inner faces span 15.6-16.8 mm of its profiles: 208-225 points at the 0.075 mm pitch. Read
+    from the first profile, the pitch makes min_segment_points 160 name them all (fewer than 1.5 x 160 points each)
+    in diagnostics for as long as it is set, and 20 none."""
+    probe = Probe(ros)
+
+    def narrow_faces():
+        values = [dict((kv.key, kv.value) for kv in s.values) for a in probe.diagnostics for s in a.status
+                  if s.name.startswith("pose_estimator")]
+        return values[-1].get("narrow_faces") if values else None
+
+    assert ros.spin_until(lambda: narrow_faces() == "unknown before the first profile"), narrow_faces()
+    stamp = probe.stamp()
+    profile = cloud_from_points(render_profile(gauge, *sample_pose(gauge, rng)), stamp, "profiler")
+    assert probe.send_until(profile, lambda: probe.pose_for(stamp) is not None)
+    probe.diagnostics.clear()
+    assert ros.spin_until(lambda: narrow_faces() == "none"), narrow_faces()
+    assert probe.estimator.set_parameters([Parameter("min_segment_points", value=160)])[0].successful
+    probe.diagnostics.clear()
+    assert ros.spin_until(lambda: narrow_faces() not in (None, "none")), narrow_faces()
+    named = narrow_faces()
+    assert "pitch of 0.075 mm" in named and "face 1 as little as" in named and "face 4 as little as" in named, named
+    assert probe.estimator.set_parameters([Parameter("min_segment_points", value=20)])[0].successful
+    probe.diagnostics.clear()
+    assert ros.spin_until(lambda: narrow_faces() == "none"), narrow_faces()
+
+
 def test_corners_too_weak_for_min_corner_angle_are_reported_while_it_is_set(ros):
     """The paper gauge's corners bend by 56-62 deg in its profiles: at min_corner_angle 0.5 rad (28.6 deg, half
     of 57.3) its two end corners are named, in diagnostics for as long as the setting holds, and none at 5 deg."""

@@ -23,7 +23,8 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ..core.compiled import loader
-from ..core.design.gauge_check import weak_corner_warning, weakest_profile_bends_deg
+from ..core.design.gauge_check import (narrow_face_warning, narrowest_profile_faces, profile_pitch,
+                                       weak_corner_warning, weakest_profile_bends_deg)
 from ..core.estimation.estimator import estimate_pose, warm_up
 from ..core.estimation.result import WEIGHTINGS, EstimatorOptions
 from ..core.model.gauge import Gauge, GaugeError
@@ -137,7 +138,7 @@ class ProfileResult:
     pose_with_covariance: bytes | None = None
     reprojection_error: float | None = None
     stamp_ns: int | None = None  # the profile's, when it had a pose
-    profile: ProfileMessage | None = None  # the decoded profile and the pose's R, t (F in G), when it had one
+    profile: ProfileMessage | None = None  # the decoded profile, when it decoded; the pose's R, t (F in G) when it had one
     rotation: np.ndarray | None = None
     translation: np.ndarray | None = None
 
@@ -157,7 +158,7 @@ def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOption
         return ProfileResult(f"profile frame_id '{profile.frame_id}' is not '{profiler_frame}'")
     estimate = estimate_pose(profile.points, gauge, options)
     if not estimate.ok:
-        return ProfileResult(estimate.reason, reprojection_error=estimate.reprojection_error)
+        return ProfileResult(estimate.reason, reprojection_error=estimate.reprojection_error, profile=profile)
     into = into or SerializedPosePair()
     into.fill(estimate.R, estimate.t, estimate.covariance, profile.stamp_sec, profile.stamp_nanosec, gauge_frame,
               hint)
@@ -181,6 +182,9 @@ class PoseEstimatorNode(Node):
         self.profile_bends = weakest_profile_bends_deg(self.gauge)  # per corner: min_corner_angle is read against it
         self.weak_corners = None
         self._check_corner_bends()
+        self.face_widths = narrowest_profile_faces(self.gauge)  # per inner face: read against the profiles' pitch
+        self.pitch = None  # the first decoded profile's
+        self.narrow_faces = None
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         # rclpy attaches default QoS-event handlers to every endpoint, and its executor walks all of them on
@@ -240,6 +244,7 @@ class PoseEstimatorNode(Node):
             self.diagnostics_timer.timer_period_ns = int(values["diagnostics_period"] * 1e9)
         self.values, self.options = values, options
         self._check_corner_bends()
+        self._check_face_widths()
         return SetParametersResult(successful=True)
 
     def _check_corner_bends(self) -> None:
@@ -249,6 +254,15 @@ class PoseEstimatorNode(Node):
         if warning is not None and warning != self.weak_corners:
             self.get_logger().warning(warning)
         self.weak_corners = warning
+
+    def _check_face_widths(self) -> None:
+        """Say, when it changes, which faces hold too few points at the profiles' pitch for the min_segment_points
+        now set (their profiles refused as a face short: a binned or thinned profiler); diagnostics carry it."""
+        warning = narrow_face_warning(self.gauge, self.options.corners.min_segment_points, self.pitch or np.nan,
+                                      self.face_widths)
+        if warning is not None and warning != self.narrow_faces:
+            self.get_logger().warning(warning)
+        self.narrow_faces = warning
 
     # ------------------------------------------------------------------ profiles
     @staticmethod
@@ -298,6 +312,11 @@ class PoseEstimatorNode(Node):
     def _estimate_and_publish(self, serialized: bytes) -> str:
         result = poses_from_profile(serialized, self.gauge, self.options, self.values["profiler_frame"],
                                     self.values["gauge_frame"], self.outgoing, self.values["orientation_hint"])
+        if self.pitch is None and result.profile is not None:  # once: the profiler's pitch is set before it runs
+            pitch = profile_pitch(result.profile.points)
+            if pitch > 0:
+                self.pitch = pitch
+                self._check_face_widths()
         if result.reprojection_error is not None:
             self.last_reprojection_error = result.reprojection_error
         if result.reason:
@@ -358,6 +377,7 @@ class PoseEstimatorNode(Node):
             "mean_processing_ms": 1e3 * w["busy"] / received if received else 0.0,
             "mean_processing_cpu_ms": 1e3 * w["cpu"] / received if received else 0.0,
             "gauge": self.gauge.name, "gauge_file": self.gauge_file, "weak_corners": self.weak_corners or "none",
+            "narrow_faces": self.narrow_faces or ("none" if self.pitch else "unknown before the first profile"),
             "pose_subscribers": self.pose_pub.get_subscription_count(),  # matched: who gets the poses now
             **self.latency.report(),
         }
