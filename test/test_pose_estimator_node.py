@@ -46,6 +46,12 @@ class Probe:
     def send_until(self, msg, condition, timeout=10.0):
         return self.ros.spin_until(condition, timeout, action=lambda: self.publisher.publish(msg))
 
+    def diagnostic_value(self, key):
+        """The value under `key` in the estimator's latest status received, None before one."""
+        values = [dict((kv.key, kv.value) for kv in s.values) for a in self.diagnostics for s in a.status
+                  if s.name.startswith("pose_estimator")]
+        return values[-1].get(key) if values else None
+
     def pose_for(self, stamp):
         for pose in self.poses:
             if pose.header.stamp == stamp:
@@ -283,12 +289,7 @@ def test_faces_too_narrow_at_the_profiles_pitch_are_reported_while_min_segment_p
     from the first profile, the pitch makes min_segment_points 160 name them all (fewer than 1.5 x 160 points each)
     in diagnostics for as long as it is set, and 20 none."""
     probe = Probe(ros)
-
-    def narrow_faces():
-        values = [dict((kv.key, kv.value) for kv in s.values) for a in probe.diagnostics for s in a.status
-                  if s.name.startswith("pose_estimator")]
-        return values[-1].get("narrow_faces") if values else None
-
+    narrow_faces = lambda: probe.diagnostic_value("narrow_faces")  # noqa: E731
     assert ros.spin_until(lambda: narrow_faces() == "unknown before the first profile"), narrow_faces()
     stamp = probe.stamp()
     profile = cloud_from_points(render_profile(gauge, *sample_pose(gauge, rng)), stamp, "profiler")
@@ -309,12 +310,7 @@ def test_corners_too_weak_for_min_corner_angle_are_reported_while_it_is_set(ros)
     """The paper gauge's corners bend by 56-62 deg in its profiles: at min_corner_angle 0.5 rad (28.6 deg, half
     of 57.3) its two end corners are named, in diagnostics for as long as the setting holds, and none at 5 deg."""
     probe = Probe(ros)
-
-    def weak_corners():
-        values = [dict((kv.key, kv.value) for kv in s.values) for a in probe.diagnostics for s in a.status
-                  if s.name.startswith("pose_estimator")]
-        return values[-1].get("weak_corners") if values else None
-
+    weak_corners = lambda: probe.diagnostic_value("weak_corners")  # noqa: E731
     assert ros.spin_until(lambda: weak_corners() == "none"), weak_corners()
     assert probe.estimator.set_parameters([Parameter("min_corner_angle", value=0.5)])[0].successful
     probe.diagnostics.clear()
