@@ -479,3 +479,34 @@ def test_a_refinement_cut_short_by_its_iteration_limit_is_not_weighted_again(gau
     assert short.iterations == 2
     full = refine_pose(gauge, detection.corners, start, detection.covariance(None))
     assert full.iterations < 30  # from there it converges: the limit, not the start, cut the short one
+
+
+def on_a_table(gauge: Gauge, rotation: np.ndarray, t: np.ndarray, points: np.ndarray, below: float) -> np.ndarray:
+    """The profile with what the gauge stands on: a plane `below` m under its base, met by every ray (along +z in
+    F) that misses the gauge, as a cell's table or fixture plate is (shadows not modelled: the plane reaches
+    the side walls)."""
+    out = points.copy()
+    miss = np.isnan(out[:, 1])
+    depth = (gauge.base_z - below - t[2] - rotation[2, 0] * out[miss, 0]) / rotation[2, 2]
+    out[miss, 1] = depth + 5e-6 * np.random.default_rng(0).standard_normal(depth.size)
+    return out
+
+
+@pytest.mark.parametrize("below", [0.0, 0.02])
+@pytest.mark.parametrize("gauge_file", ["gauge_paper_n5.yaml", "gauge_designed_n6.yaml"])
+def test_the_table_beside_the_gauge_is_left_out_and_the_pose_is_the_gauges(gauge_file, below, rng):
+    """The laser line is wider than the gauge: on either side it meets what the gauge stands on, whose segments
+    corner detection would count as faces. Cut at the gauge's edges (background.py), every profile gives the pose
+    it gives without the table, to within its own precision; a flat profile of the table alone gives none."""
+    gauge = Gauge.from_yaml(config_path(gauge_file))
+    for _ in range(10):
+        rotation, t = sample_pose(gauge, rng)
+        alone = render_profile(gauge, rotation, t, noise_std=5e-6, spike_fraction=0.01, rng=rng)
+        seen = on_a_table(gauge, rotation, t, alone, below)
+        assert np.isfinite(seen).all(axis=1).sum() > 3000  # the table fills the rest of the field
+        estimate, reference = estimate_pose(seen, gauge), estimate_pose(alone, gauge)
+        assert estimate.ok and reference.ok, (estimate.reason, reference.reason)
+        assert np.linalg.norm(estimate.t - reference.t) < 3 * estimate.position_sigma
+        assert pose_error(estimate.R, estimate.t, rotation, t)[0] < 1e-3
+    table = on_a_table(gauge, rotation, t, np.column_stack([alone[:, 0], np.full(len(alone), np.nan)]), below)
+    assert not estimate_pose(table, gauge).ok

@@ -19,6 +19,7 @@ from profile_pose_ros.nodes.messages import cloud_from_points, rotation_translat
 from profile_pose_ros.nodes.pose_estimator import PoseEstimatorNode
 
 from conftest import PAPER_GAUGE
+from test_estimator_robustness import on_a_table
 
 
 class Probe:
@@ -172,6 +173,17 @@ def test_a_profile_with_rep117_infinities_for_invalid_points_gives_the_pose_of_i
         assert probe.send_until(msg, lambda: probe.pose_for(stamp) is not None), "no pose"
         poses.append(rotation_translation(probe.pose_for(stamp).pose))
     assert np.array_equal(poses[0][0], poses[1][0]) and np.array_equal(poses[0][1], poses[1][1])
+
+
+def test_a_profile_that_also_sees_the_table_gives_the_gauges_pose(ros, gauge, rng):
+    """The laser line meets the plane the gauge stands on either side of it: the node's pose is the gauge's."""
+    probe = Probe(ros)
+    rotation, t = sample_pose(gauge, rng)
+    profile = on_a_table(gauge, rotation, t, render_profile(gauge, rotation, t, noise_std=5e-6, rng=rng), 0.01)
+    stamp = probe.stamp()
+    assert probe.send_until(cloud_from_points(profile, stamp, "profiler"), lambda: probe.pose_for(stamp) is not None)
+    position, angle = pose_error(*rotation_translation(probe.pose_for(stamp).pose), rotation, t)
+    assert position < 0.5e-3 and angle < 2e-3
 
 
 def test_spiky_profiles_never_give_a_wrong_pose(ros, gauge, rng):

@@ -18,6 +18,7 @@ from ..compiled import codes
 from ..compiled.loader import kernels
 from ..model.gauge import Gauge
 from ..model.rotation import rotation_angle, so3_log
+from .background import without_background
 from .hidden_face import make_partial_gauges, partial_view_estimate, partial_view_inputs
 from .result import (REASON_NOT_FINITE, EstimatorOptions, PoseEstimate, reason_ambiguous, reason_inconsistent,
                      reason_outside, reason_poorly_determined, reason_reprojection)
@@ -97,7 +98,8 @@ def _reason(status: int, info: np.ndarray, gauge: Gauge, options: EstimatorOptio
     return f"internal status {status}"
 
 
-def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions) -> PoseEstimate:
+def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOptions,
+                          background_cut: bool = False) -> PoseEstimate:
     """The whole estimate in a single compiled call (corners, closed form or four-ridge starts, refinement,
     basin search, checks) and, when corner detection refuses the profile, the partial view's (hidden_face.py):
     perhaps a gap hides a whole face. Its corners then see the gauge without that face, but the profile's points
@@ -120,11 +122,24 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
     timings = {"total": time.perf_counter() - start}
     outcome, m, which = result[:7], result[7], result[8:]
     if outcome[0] == codes.X_NOT_INCREASING and x_decreasing(points):
-        return _estimate_in_one_call(points[::-1], gauge, options)
+        return _estimate_in_one_call(points[::-1], gauge, options, background_cut)
+    if not background_cut and _too_many_faces(outcome[0], outputs[8], n):
+        kept = without_background(points, options.corners.max_face_angle)
+        if kept is not None:  # what the gauge stands on, seen beside it: its segments are no faces of the gauge
+            again = _estimate_in_one_call(kept, gauge, options, background_cut=True)
+            if again.ok:
+                again.timings["total"] = time.perf_counter() - start
+                return again
     if which[0] == codes.PARTIAL_NONE:
         return _described(outcome, outputs, lambda: gauge, options, timings)
     outputs = (outputs[0][:m], *outputs[1:6], outputs[6][:m], outputs[7][:m], outputs[8])
     return partial_view_estimate(outcome, outputs, which, where, gauge, options, _described, timings)
+
+
+def _too_many_faces(status: int, info: np.ndarray, n: int) -> bool:
+    """Whether corner detection refused a profile for more faces than the gauge has, or a steep segment between
+    faces: what a table or a fixture beside the gauge makes (background.py)."""
+    return status == codes.STEEP_SEGMENT or status == codes.WRONG_CORNER_COUNT and info[1] > n + 1
 
 
 def x_decreasing(points: np.ndarray) -> bool:
