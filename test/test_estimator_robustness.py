@@ -5,6 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from profile_pose_ros.core import estimate_pose, pose_error, render_profile, sample_pose, true_corners
+from profile_pose_ros.core.estimation.background import _median_of_five
 from profile_pose_ros.core.estimation.estimator import pose_nees
 from profile_pose_ros.core.compiled.codes import GAP_PITCHES, MAX_GLINT_RUN
 from profile_pose_ros.core.compiled.estimate_kernel import _drop_spikes, _median5, profile_gaps
@@ -510,3 +511,11 @@ def test_the_table_beside_the_gauge_is_left_out_and_the_pose_is_the_gauges(gauge
         assert pose_error(estimate.R, estimate.t, rotation, t)[0] < 1e-3
     table = on_a_table(gauge, rotation, t, np.column_stack([alone[:, 0], np.full(len(alone), np.nan)]), below)
     assert not estimate_pose(table, gauge).ok
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1.0, 1.0, allow_nan=False) | st.sampled_from([0.0, 0.5, -0.5]), min_size=1, max_size=60))
+def test_the_background_cut_median_of_five_is_numpys(values):
+    z = np.array(values)
+    expected = np.median(np.lib.stride_tricks.sliding_window_view(np.pad(z, 2, mode="edge"), 5), axis=1)
+    assert np.array_equal(_median_of_five(z), expected)
