@@ -138,7 +138,7 @@ class ProfileResult:
     pose_with_covariance: bytes | None = None
     reprojection_error: float | None = None
     stamp_ns: int | None = None  # the profile's, when it had a pose
-    profile: ProfileMessage | None = None  # the decoded profile, when it decoded; the pose's R, t (F in G) when it had one
+    profile: ProfileMessage | None = None  # the decoded profile, if it decoded; the pose's R, t (F in G) if it had one
     rotation: np.ndarray | None = None
     translation: np.ndarray | None = None
 

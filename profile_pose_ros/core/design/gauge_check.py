@@ -105,8 +105,8 @@ def narrow_face_warning(gauge: Gauge, min_segment_points: int, pitch: float,
     suggested = max(3, int(points[narrow].min() / NARROW_FACE_MARGIN))
     return (f"gauge '{gauge.name}': faces narrow in the profile at its pitch of {pitch * 1e3:.3f} mm ({faces}; corner "
             f"detection ignores segments of fewer than min_segment_points, {min_segment_points}): expect profiles "
-            f"refused as 'corner detection: found' fewer than {gauge.n_ridges} corners where they are. A finer pitch (less binning or "
-            f"thinning), or min_segment_points near {suggested}, keeps them")
+            f"refused as 'corner detection: found' fewer than {gauge.n_ridges} corners where they are. A finer "
+            f"pitch (less binning or thinning), or min_segment_points near {suggested}, keeps them")
 
 
 def weak_corner_warning(gauge: Gauge, min_corner_angle: float, bends: np.ndarray | None = None) -> str | None:
