@@ -127,7 +127,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
         kept = without_background(points, options.corners.max_face_angle)
         if kept is not None:  # what the gauge stands on, seen beside it: its segments are no faces of the gauge
             again = _estimate_in_one_call(kept, gauge, options, background_cut=True)
-            if again.ok:
+            if again.ok or len(again.corners):  # its corners found: its pose, or why that pose is refused
                 again.timings["total"] = time.perf_counter() - start
                 return again
     if which[0] == codes.PARTIAL_NONE:
