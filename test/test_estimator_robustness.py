@@ -507,6 +507,7 @@ def test_the_table_beside_the_gauge_is_left_out_and_the_pose_is_the_gauges(gauge
         assert np.isfinite(seen).all(axis=1).sum() > 3000  # the table fills the rest of the field
         estimate, reference = estimate_pose(seen, gauge), estimate_pose(alone, gauge)
         assert estimate.ok and reference.ok, (estimate.reason, reference.reason)
+        assert estimate.background_cut and not reference.background_cut
         assert np.linalg.norm(estimate.t - reference.t) < 3 * estimate.position_sigma
         assert pose_error(estimate.R, estimate.t, rotation, t)[0] < 1e-3
     table = on_a_table(gauge, rotation, t, np.column_stack([alone[:, 0], np.full(len(alone), np.nan)]), below)

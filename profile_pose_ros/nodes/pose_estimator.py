@@ -141,6 +141,7 @@ class ProfileResult:
     profile: ProfileMessage | None = None  # the decoded profile, if it decoded; the pose's R, t (F in G) if it had one
     rotation: np.ndarray | None = None
     translation: np.ndarray | None = None
+    background_cut: bool = False  # the estimate left out what the gauge stands on (estimation/background.py)
 
 
 def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOptions, profiler_frame: str,
@@ -158,12 +159,13 @@ def poses_from_profile(serialized: bytes, gauge: Gauge, options: EstimatorOption
         return ProfileResult(f"profile frame_id '{profile.frame_id}' is not '{profiler_frame}'")
     estimate = estimate_pose(profile.points, gauge, options)
     if not estimate.ok:
-        return ProfileResult(estimate.reason, reprojection_error=estimate.reprojection_error, profile=profile)
+        return ProfileResult(estimate.reason, reprojection_error=estimate.reprojection_error, profile=profile,
+                             background_cut=estimate.background_cut)
     into = into or SerializedPosePair()
     into.fill(estimate.R, estimate.t, estimate.covariance, profile.stamp_sec, profile.stamp_nanosec, gauge_frame,
               hint)
     return ProfileResult("", into.pose, into.with_covariance, estimate.reprojection_error, profile.stamp_ns,
-                         profile, estimate.R, estimate.t)
+                         profile, estimate.R, estimate.t, estimate.background_cut)
 
 
 class PoseEstimatorNode(Node):
@@ -199,6 +201,7 @@ class PoseEstimatorNode(Node):
         self.latency = LatencyWindow("trigger_to_pose_ms")  # the profile's stamp -> its pose published
         self.diagnostics_timer = self.create_timer(self.values["diagnostics_period"], self._publish_diagnostics)
         self.received = self.published = self.rejected = self.lost_in_transport = self.skipped = 0
+        self.background_cuts = 0  # profiles whose estimate left out what the gauge stands on (one writer: the input)
         self.gaps = SequenceGaps()  # profiles never taken: overwritten in the queue, or lost on the way
         self.stats_lock = threading.Lock()  # callbacks may run on other executors' threads
         self.window = self._new_window(time.monotonic())
@@ -317,6 +320,7 @@ class PoseEstimatorNode(Node):
             if pitch > 0:
                 self.pitch = pitch
                 self._check_face_widths()
+        self.background_cuts += result.background_cut
         if result.reprojection_error is not None:
             self.last_reprojection_error = result.reprojection_error
         if result.reason:
@@ -371,6 +375,7 @@ class PoseEstimatorNode(Node):
             "profiles_rejected": self.rejected, "profiles_lost": self.gaps.missed,
             "profiles_lost_in_transport": self.lost_in_transport, "profile_writers": self.gaps.writers,
             "profiles_skipped_stale": self.skipped,
+            "profiles_background_cut": self.background_cuts,
             "last_error": self.last_error or "none",
             "max_profile_age_ms": w["max_age"] * 1e3,
             "last_reprojection_error_um": self.last_reprojection_error * 1e6,

@@ -129,6 +129,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
             again = _estimate_in_one_call(kept, gauge, options, background_cut=True)
             if again.ok or len(again.corners):  # its corners found: its pose, or why that pose is refused
                 again.timings["total"] = time.perf_counter() - start
+                again.background_cut = True  # again is this call's own
                 return again
     if which[0] == codes.PARTIAL_NONE:
         return _described(outcome, outputs, lambda: gauge, options, timings)

@@ -135,6 +135,7 @@ class PoseEstimate:
     hidden_face: int | None = None  # the face a gap hid, or the one end face out of view (hidden_face.py)
     faces_hidden: int = 0  # how many adjacent faces from hidden_face the gap hid (1 or 2; 0: none)
     faces_in_view: tuple[int, int] | None = None  # first, last: when faces beyond the profile's ends were not seen
+    background_cut: bool = False  # what the gauge stands on, seen beside it, left out (background.py)
 
 
 def rejected(estimate: PoseEstimate, reason: str, **changes) -> PoseEstimate:
