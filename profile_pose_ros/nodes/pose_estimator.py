@@ -23,8 +23,8 @@ from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from ..core.compiled import loader
-from ..core.design.gauge_check import (narrow_face_warning, narrowest_profile_faces, profile_pitch,
-                                       weak_corner_warning, weakest_profile_bends_deg)
+from ..core.design.gauge_check import (narrow_face_warning, profile_pitch, weak_corner_warning,
+                                       weakest_bends_and_narrowest_faces)
 from ..core.estimation.estimator import estimate_pose, warm_up
 from ..core.estimation.result import WEIGHTINGS, EstimatorOptions
 from ..core.model.gauge import Gauge, GaugeError
@@ -181,10 +181,10 @@ class PoseEstimatorNode(Node):
             self.get_logger().info("compiling the estimator for this machine before the first profile "
                                    "(once per installed version, about a minute)")
         compile_s = warm_up(self.gauge, self.options)  # compile (or load) before the first profile
-        self.profile_bends = weakest_profile_bends_deg(self.gauge)  # per corner: min_corner_angle is read against it
+        # per corner, read against min_corner_angle; per inner face, read against the profiles' pitch
+        self.profile_bends, self.face_widths = weakest_bends_and_narrowest_faces(self.gauge)
         self.weak_corners = None
         self._check_corner_bends()
-        self.face_widths = narrowest_profile_faces(self.gauge)  # per inner face: read against the profiles' pitch
         self.pitch = None  # the first decoded profile's
         self.narrow_faces = None
         self.add_on_set_parameters_callback(self._on_set_parameters)

@@ -47,33 +47,44 @@ def profile_bends_deg(gauge: Gauge, rotation: np.ndarray, translation: np.ndarra
     return np.abs(np.diff(slopes))
 
 
-def _least_over_the_pose_range(gauge: Gauge, measure, poses: int, seed: int) -> np.ndarray:
-    """measure(gauge, rotation, translation), element by element the least at the nominal pose and over poses
-    drawn from the pose range (model.poses; none where no pose shows every corner, which check_rules reports on
-    its own)."""
+def _least_over_the_pose_range(gauge: Gauge, measures: tuple, poses: int, seed: int) -> tuple[np.ndarray, ...]:
+    """For each measure(gauge, rotation, translation), element by element the least at the nominal pose and over
+    poses drawn from the pose range, one draw for all of them (model.poses; none where no pose shows every
+    corner, which check_rules reports on its own)."""
     from ..model.poses import sample_pose
 
     rng = np.random.default_rng(seed)
-    values = [measure(gauge, *nominal_pose(gauge))]
+    drawn = [nominal_pose(gauge)]
     for _ in range(poses):
         try:
-            values.append(measure(gauge, *sample_pose(gauge, rng, max_tries=200)))
+            drawn.append(sample_pose(gauge, rng, max_tries=200))
         except RuntimeError:  # the poses drawn so far still count
             break
-    return np.min(values, axis=0)
+    return tuple(np.min([measure(gauge, *pose) for pose in drawn], axis=0) for measure in measures)
+
+
+def profile_face_widths(gauge: Gauge, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Each inner face's (1 .. n - 1) span along the laser line at a pose (m): the points corner detection gets of
+    it are this over the profile's pitch. The end faces reach the gauge's edges."""
+    from ..model.render import true_corners
+
+    return np.diff(true_corners(gauge, rotation, translation)[:, 0])
 
 
 def weakest_profile_bends_deg(gauge: Gauge, poses: int = 20, seed: int = 0) -> np.ndarray:
     """Each corner's smallest bend in the profile over the pose range."""
-    return _least_over_the_pose_range(gauge, profile_bends_deg, poses, seed)
+    return _least_over_the_pose_range(gauge, (profile_bends_deg,), poses, seed)[0]
 
 
 def narrowest_profile_faces(gauge: Gauge, poses: int = 20, seed: int = 0) -> np.ndarray:
-    """Each inner face's (1 .. n - 1) narrowest span along the laser line over the pose range (m): the points
-    corner detection gets of it are this over the profile's pitch. The end faces reach the gauge's edges."""
-    from ..model.render import true_corners
+    """Each inner face's narrowest span in the profile over the pose range (m)."""
+    return _least_over_the_pose_range(gauge, (profile_face_widths,), poses, seed)[0]
 
-    return _least_over_the_pose_range(gauge, lambda g, r, t: np.diff(true_corners(g, r, t)[:, 0]), poses, seed)
+
+def weakest_bends_and_narrowest_faces(gauge: Gauge, poses: int = 20, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """weakest_profile_bends_deg and narrowest_profile_faces over one draw of the poses (a node needs both at
+    start, and drawing them takes tens of ms)."""
+    return _least_over_the_pose_range(gauge, (profile_bends_deg, profile_face_widths), poses, seed)
 
 
 def profile_pitch(points: np.ndarray) -> float:
