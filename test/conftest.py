@@ -123,6 +123,17 @@ def wait_for(condition, timeout: float = 10.0) -> bool:
     return bool(condition())
 
 
+def on_a_table(gauge: Gauge, rotation: np.ndarray, t: np.ndarray, points: np.ndarray, below: float) -> np.ndarray:
+    """The profile with what the gauge stands on: a plane `below` m under its base, met by every ray (along +z in
+    F) that misses the gauge, as a cell's table or fixture plate is (shadows not modelled: the plane reaches
+    the side walls)."""
+    out = points.copy()
+    miss = np.isnan(out[:, 1])
+    depth = (gauge.base_z - below - t[2] - rotation[2, 0] * out[miss, 0]) / rotation[2, 2]
+    out[miss, 1] = depth + 5e-6 * np.random.default_rng(0).standard_normal(depth.size)
+    return out
+
+
 def paced(action, period: float = 0.005):
     """action() at most once per period: publishing on every spin turn floods a subscription's queue, and on a
     slow machine the message a node handles is then as old as depth x turn time (stale for a node that checks

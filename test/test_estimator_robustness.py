@@ -13,6 +13,8 @@ from profile_pose_ros.core.model.gauge import Gauge, GaugeError
 from profile_pose_ros.core.design.gauge_design import random_gauge
 from profile_pose_ros.resources import config_path
 
+from conftest import on_a_table
+
 finite = st.floats(-1e3, 1e3, allow_nan=False)
 
 
@@ -480,17 +482,6 @@ def test_a_refinement_cut_short_by_its_iteration_limit_is_not_weighted_again(gau
     assert short.iterations == 2
     full = refine_pose(gauge, detection.corners, start, detection.covariance(None))
     assert full.iterations < 30  # from there it converges: the limit, not the start, cut the short one
-
-
-def on_a_table(gauge: Gauge, rotation: np.ndarray, t: np.ndarray, points: np.ndarray, below: float) -> np.ndarray:
-    """The profile with what the gauge stands on: a plane `below` m under its base, met by every ray (along +z in
-    F) that misses the gauge, as a cell's table or fixture plate is (shadows not modelled: the plane reaches
-    the side walls)."""
-    out = points.copy()
-    miss = np.isnan(out[:, 1])
-    depth = (gauge.base_z - below - t[2] - rotation[2, 0] * out[miss, 0]) / rotation[2, 2]
-    out[miss, 1] = depth + 5e-6 * np.random.default_rng(0).standard_normal(depth.size)
-    return out
 
 
 @pytest.mark.parametrize("below", [0.0, 0.02])

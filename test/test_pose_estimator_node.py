@@ -18,8 +18,7 @@ from profile_pose_ros.core.model.rotation import so3_log
 from profile_pose_ros.nodes.messages import cloud_from_points, rotation_translation
 from profile_pose_ros.nodes.pose_estimator import PoseEstimatorNode
 
-from conftest import PAPER_GAUGE
-from test_estimator_robustness import on_a_table
+from conftest import PAPER_GAUGE, on_a_table
 
 
 class Probe:

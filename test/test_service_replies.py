@@ -15,6 +15,14 @@ class Reply:
         return self.answered
 
 
+def sender(sent: list[Reply]):
+    """send() for first_answered: a new request's reply, kept in `sent`."""
+    def send() -> Reply:
+        sent.append(Reply())
+        return sent[-1]
+    return send
+
+
 def test_a_lost_reply_is_asked_for_again_and_the_first_answer_ends_it() -> None:
     sent: list[Reply] = []
     lost = 2  # the first two requests' replies never come
@@ -24,11 +32,7 @@ def test_a_lost_reply_is_asked_for_again_and_the_first_answer_ends_it() -> None:
             sent[-1].answered = True
         return condition()
 
-    def send() -> Reply:
-        sent.append(Reply())
-        return sent[-1]
-
-    answered = first_answered(send, spin_until, time.monotonic() + 10.0, wait=0.0)
+    answered = first_answered(sender(sent), spin_until, time.monotonic() + 10.0, wait=0.0)
     assert answered is sent[2] and len(sent) == 3
 
 
@@ -40,19 +44,10 @@ def test_a_late_reply_to_an_earlier_request_counts() -> None:
             sent[0].answered = True  # the first request's reply, delayed past the first wait
         return condition()
 
-    def send() -> Reply:
-        sent.append(Reply())
-        return sent[-1]
-
-    assert first_answered(send, spin_until, time.monotonic() + 10.0, wait=0.0) is sent[0] and len(sent) == 2
+    assert first_answered(sender(sent), spin_until, time.monotonic() + 10.0, wait=0.0) is sent[0] and len(sent) == 2
 
 
 def test_nothing_answered_by_the_deadline_is_none_after_one_request() -> None:
     sent: list[Reply] = []
-
-    def send() -> Reply:
-        sent.append(Reply())
-        return sent[-1]
-
-    assert first_answered(send, lambda condition, timeout: condition(), time.monotonic()) is None
+    assert first_answered(sender(sent), lambda condition, timeout: condition(), time.monotonic()) is None
     assert len(sent) == 1

@@ -121,7 +121,7 @@ def _estimate_in_one_call(points: np.ndarray, gauge: Gauge, options: EstimatorOp
         return PoseEstimate(False, f"refinement: {exc}", timings={"total": time.perf_counter() - start})
     timings = {"total": time.perf_counter() - start}
     outcome, m, which = result[:7], result[7], result[8:]
-    if outcome[0] == codes.X_NOT_INCREASING and x_decreasing(points):
+    if outcome[0] == codes.X_NOT_INCREASING and _x_decreasing(points):
         return _estimate_in_one_call(points[::-1], gauge, options, background_cut)
     if not background_cut and _too_many_faces(outcome[0], outputs[8], n):
         kept = without_background(points, options.corners.max_face_angle)
@@ -143,7 +143,7 @@ def _too_many_faces(status: int, info: np.ndarray, n: int) -> bool:
     return status == codes.STEEP_SEGMENT or status == codes.WRONG_CORNER_COUNT and info[1] > n + 1
 
 
-def x_decreasing(points: np.ndarray) -> bool:
+def _x_decreasing(points: np.ndarray) -> bool:
     """Whether the valid points' x strictly decrease: a profiler (or a driver) that reports the laser line from
     +x to -x gives the same profile as one reporting it from -x to +x, and is estimated in that order; any other
     order is refused, as a fold-over or a scrambled message says something is wrong."""
